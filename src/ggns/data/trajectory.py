@@ -1,0 +1,42 @@
+"""The in-memory form of one simulated trajectory: what the generator produces, what the
+dataset files store (see `ggns.data.schema`) and what the graph builders read.
+
+Shapes use T = number of recorded steps (initial state included), N = mesh nodes,
+K = collider surface vertices, d = spatial dimension (2 or 3), P = points over all steps.
+All coordinates are in the normalized task space [-1, 1]^d.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Trajectory:
+    rest_positions: np.ndarray  # [N, d] float64, mesh nodes in the rest (mesh-space) state
+    cells: np.ndarray  # [C, d+1] int64, triangles (2D) or tetrahedra (3D)
+    edges: np.ndarray  # [E, 2] int64, undirected mesh edges with i < j, sorted
+    positions: np.ndarray  # [T, N, d] float64, mesh node positions per step
+    fixed: np.ndarray  # [N] bool, Dirichlet (fixed) mesh nodes
+    collider_faces: np.ndarray  # [F, d] int64, collider surface: segments (2D) / triangles (3D)
+    collider_positions: np.ndarray  # [T, K, d] float64, collider surface vertices per step
+    points: np.ndarray  # [P, d] float32, point clouds of all steps, concatenated
+    point_offsets: np.ndarray  # [T+1] int64, step t owns points[offsets[t]:offsets[t+1]]
+    youngs_modulus: float  # E in Pa
+    poissons_ratio: float  # nu, -1 < nu < 0.5
+    seed: int  # the seed this trajectory was generated from
+    params: dict = field(default_factory=dict)  # scene parameters (scalars or strings)
+    diagnostics: dict = field(default_factory=dict)  # per-step simulator diagnostics, name -> [T]
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def dim(self) -> int:
+        return int(self.rest_positions.shape[1])
+
+    def point_cloud(self, t: int) -> np.ndarray:
+        """The point cloud at step t, [P_t, d]."""
+        return self.points[self.point_offsets[t] : self.point_offsets[t + 1]]

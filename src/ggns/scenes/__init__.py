@@ -1,0 +1,8 @@
+"""Scenes: each module builds meshes, samples scene parameters and produces `Trajectory`s.
+
+A scene module provides `num_combinations(scene_cfg)` (shape x material combinations that
+balanced splits cycle through) and `make_trajectory(config, combination, seed, sensor)`.
+"""
+from . import plate
+
+SCENES = {"plate": plate}

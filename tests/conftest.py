@@ -1,0 +1,21 @@
+"""Shared fixtures: small meshes and the tiny plate configuration."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import skfem
+
+from ggns.config import load_config
+
+
+def box_mesh(dim: int, n: int = 5, size=(1.0, 1.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+    """Structured simplicial mesh of a box: positions [N, dim], cells [C, dim+1] (from scikit-fem)."""
+    axes = [np.linspace(0.0, size[i], n) for i in range(dim)]
+    mesh = skfem.MeshTri.init_tensor(*axes) if dim == 2 else skfem.MeshTet.init_tensor(*axes)
+    return mesh.p.T.copy(), mesh.t.T.astype(np.int64).copy()
+
+
+@pytest.fixture
+def tiny_config(tmp_path) -> dict:
+    """The plate_tiny preset writing into a temporary directory."""
+    return load_config("plate_tiny", [f"output={tmp_path / 'data'}"])

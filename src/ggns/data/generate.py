@@ -63,6 +63,8 @@ def generate(config: dict, splits: list[str] | None = None, *, overwrite: bool =
     name, sizes = config["scene"]["name"], config["splits"]
     if name not in SCENES:
         raise ValueError(f"unknown scene {name!r}; known: {sorted(SCENES)}")
+    SCENES[name].check_config(config)
+    SensorConfig.from_dict(config["sensor"])
     chosen = list(sizes) if splits is None else list(splits)
     unknown = [s for s in chosen if s not in sizes]
     if unknown:

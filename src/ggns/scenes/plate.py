@@ -87,6 +87,27 @@ def collider_path(scene: dict, spec: PlateSpec) -> tuple[np.ndarray, np.ndarray]
     return path, segments
 
 
+def check_config(config: dict) -> None:
+    """Refuse a configuration before any work starts: invalid materials or solver settings,
+    or a scene that can leave the task space [-1, 1]^2 (plate or largest collider)."""
+    scene = config["scene"]
+    for nu in scene["poissons_ratios"]:
+        Material(scene["youngs_modulus"], nu, scene["density"], scene["rayleigh_mass"], scene["rayleigh_stiffness"])
+    SolverConfig(dt=scene["frame_dt"] / int(scene["substeps"]), **config["solver"])
+    if int(scene["num_steps"]) < 2:
+        raise ValueError(f"scene.num_steps must be >= 2, got {scene['num_steps']}")
+    lo, mode, hi = scene["collider"]["radius_fraction"]
+    if not 0 < lo <= mode <= hi:
+        raise ValueError(f"collider.radius_fraction must be 0 < min <= mode <= max, got {[lo, mode, hi]}")
+    top = scene["bottom_y"] + scene["height"]
+    for shape in range(len(scene["top_widths"]) * len(scene["top_offsets"])):
+        bl, br, tl, tr = trapezoid(scene, shape)
+        r = hi * (tr - tl)
+        extent = max(abs(bl), abs(br), abs(tl) + r, abs(tr) + r, abs(scene["bottom_y"]), top + scene["collider"]["start_gap"] + 2 * r)
+        if extent > 1.0:
+            raise ValueError(f"plate shape {shape} with its largest collider reaches {extent:.3f} > 1: the scene must fit in [-1, 1]^2")
+
+
 def num_combinations(scene: dict) -> int:
     """Shape x material combinations that balanced splits cycle through."""
     return len(scene["top_widths"]) * len(scene["top_offsets"]) * len(scene["poissons_ratios"])

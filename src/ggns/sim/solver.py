@@ -32,9 +32,9 @@ class SolverConfig:
     dt: float
     gravity: tuple[float, ...] | None = None  # m/s^2, None: no gravity
     newton_tolerance: float = 1e-9  # max |dx| of the last Newton update, m
-    max_newton_iterations: int = 60
+    max_newton_iterations: int = 100
     contact_tolerance: float = 1e-4  # max penetration at the end of a step, m
-    contact_stiffness: float = 1e3  # penalty per node, relative to its own mass+stiffness diagonal
+    contact_stiffness: float = 100.0  # penalty per node, relative to its own mass+stiffness diagonal
     max_contact_iterations: int = 40
 
     def __post_init__(self) -> None:

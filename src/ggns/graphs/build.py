@@ -1,0 +1,165 @@
+"""Batched graph construction: B simulation states (mesh, collider, optional point cloud) as one
+heterogeneous graph, built with tensor operations on the inputs' device (CPU or CUDA).
+
+Conventions (see `ggns.graphs.types` for the vocabulary):
+- A node store `mesh` always exists; `collider` and `point` exist only when they have nodes.
+  Every store has `.pos` [n, d] (current positions), `.x` [n, F] and `.batch` [n] (graph of each
+  node, sorted). mesh.x = [fixed flag] (+ [Poisson ratio of its graph] for MGN(M)), F = 1 or 2;
+  collider.x = velocity (next - current position), F = d; point.x has F = 0.
+- An edge type exists only when its radius is > 0, both node types exist and it has edges.
+  `.edge_index` [2, E]: row 0 indexes the source node type, row 1 the destination node type;
+  messages flow source -> destination. Radius edges never cross graphs and have no self loops.
+- `.edge_attr` columns: [pos[src] - pos[dst] (d), its norm (1)] on every edge type; MESH_EDGE
+  appends [rest[src] - rest[dst] (d), its norm (1)] from the rest (mesh-space) state: 2(d+1).
+- Cross-type edge sets are exactly symmetric: (B, near, A) holds the flipped pairs of (A, near, B).
+- World edges (WORLD_EDGE): mesh pairs within `world` radius that are not mesh edges.
+- Radius queries return at most `max_num_neighbors` neighbours per node; the builder raises
+  instead of dropping edges when any node has more within the radius of any radius edge type
+  (on either side of a cross type; for world edges, mesh-edge neighbours count too).
+"""
+from __future__ import annotations
+
+import torch
+import torch_cluster
+from torch import Tensor
+from torch_geometric.data import HeteroData
+
+from .connectivity import Connectivity
+from .types import MESH_EDGE, WORLD_EDGE
+
+
+def directed_mesh_edges(edges: Tensor) -> Tensor:
+    """Undirected edges [E, 2] -> directed edge_index [2, 2E] (each edge in both directions)."""
+    edges = torch.as_tensor(edges, dtype=torch.long)
+    return torch.cat([edges.T, edges.T.flip(0)], dim=1)
+
+
+def relative_features(pos_src: Tensor, pos_dst: Tensor, edge_index: Tensor) -> Tensor:
+    """[pos_src[i] - pos_dst[j], norm] per edge (i, j): [E, d + 1]."""
+    rel = pos_src[edge_index[0]] - pos_dst[edge_index[1]]
+    return torch.cat([rel, rel.norm(dim=1, keepdim=True)], dim=1)
+
+
+def build_graph(
+    mesh_pos: Tensor,
+    mesh_rest: Tensor,
+    mesh_edges: Tensor,
+    fixed: Tensor,
+    mesh_batch: Tensor,
+    collider_pos: Tensor | None,
+    collider_next: Tensor | None,
+    collider_batch: Tensor | None,
+    points: Tensor | None,
+    point_batch: Tensor | None,
+    connectivity: Connectivity,
+    num_graphs: int,
+    material: Tensor | None = None,
+) -> HeteroData:
+    """The batched graph of B = num_graphs states (module docstring for the layout).
+
+    mesh_pos, mesh_rest [N, d]; mesh_edges [2, Em] directed (both directions), global indices;
+    fixed [N] bool; mesh_batch [N] long, sorted; collider_pos, collider_next [K, d] and
+    collider_batch [K] (all None when there is no collider); points [P, d] and point_batch [P]
+    (None: no points); material [B] Poisson ratios (MGN(M) node feature) or None.
+    """
+    n, d = mesh_pos.shape
+    pos, batch = {"mesh": mesh_pos}, {"mesh": mesh_batch}
+    x = {"mesh": fixed.to(mesh_pos.dtype)[:, None]}
+    if material is not None:
+        _check_shape("material", material, (num_graphs,))
+        x["mesh"] = torch.cat([x["mesh"], material.to(mesh_pos.dtype)[mesh_batch, None]], dim=1)
+    if collider_pos is not None and collider_pos.size(0) > 0:
+        if collider_next is None or collider_batch is None:
+            raise ValueError("collider_pos needs collider_next and collider_batch")
+        _check_shape("collider_next", collider_next, collider_pos.shape)
+        pos["collider"], batch["collider"] = collider_pos, collider_batch
+        x["collider"] = collider_next - collider_pos
+    if points is not None and points.size(0) > 0:
+        if point_batch is None:
+            raise ValueError("points need point_batch")
+        pos["point"], batch["point"] = points, point_batch
+        x["point"] = points.new_zeros(points.size(0), 0)
+    _check_inputs(pos, batch, mesh_rest, mesh_edges, fixed, num_graphs)
+
+    data = HeteroData()
+    data.num_graphs = num_graphs
+    for node_type in pos:
+        data[node_type].pos, data[node_type].x, data[node_type].batch = pos[node_type], x[node_type], batch[node_type]
+    if mesh_edges.size(1) > 0:
+        data[MESH_EDGE].edge_index = mesh_edges
+        data[MESH_EDGE].edge_attr = torch.cat(
+            [relative_features(mesh_pos, mesh_pos, mesh_edges), relative_features(mesh_rest, mesh_rest, mesh_edges)], dim=1
+        )
+
+    cap = connectivity.max_num_neighbors
+    most = {}  # edge type -> largest neighbour count of a node in its radius query (0-d tensor)
+    for edge_type, r in connectivity.radii().items():
+        src, _, dst = edge_type
+        if r == 0 or src not in pos or dst not in pos or edge_type in data.edge_types:
+            continue
+        if src == dst:  # symmetric: (neighbour, query) pairs, self loops removed
+            index = torch_cluster.radius_graph(pos[src], r, batch[src], max_num_neighbors=cap + 1, batch_size=num_graphs)
+            counts = [torch.bincount(index[1], minlength=pos[src].size(0))]
+            if edge_type == WORLD_EDGE:
+                index = index[:, ~torch.isin(index[0] * n + index[1], mesh_edges[0] * n + mesh_edges[1])]
+            edge_sets = {edge_type: index}
+        else:  # one query (row 0 indexes dst, row 1 src), flipped for the reverse type
+            pairs = torch_cluster.radius(
+                pos[src], pos[dst], r, batch[src], batch[dst], max_num_neighbors=cap + 1, batch_size=num_graphs
+            )
+            counts = [torch.bincount(pairs[0], minlength=pos[dst].size(0)), torch.bincount(pairs[1], minlength=pos[src].size(0))]
+            edge_sets = {edge_type: pairs.flip(0), (dst, edge_type[1], src): pairs}
+        most[edge_type] = torch.cat(counts).max()
+        for et, index in edge_sets.items():
+            if index.size(1) > 0:
+                data[et].edge_index = index
+                data[et].edge_attr = relative_features(pos[et[0]], pos[et[2]], index)
+
+    _check_caps(most, connectivity)
+    return data
+
+
+def _check_shape(name: str, tensor: Tensor, shape: tuple) -> None:
+    if tuple(tensor.shape) != tuple(shape):
+        raise ValueError(f"{name} must have shape {tuple(shape)}, got {tuple(tensor.shape)}")
+
+
+def _check_inputs(pos: dict, batch: dict, mesh_rest: Tensor, mesh_edges: Tensor, fixed: Tensor, num_graphs: int) -> None:
+    """Shapes on the host, then one device sync for the value checks (sorted batch vectors in
+    [0, num_graphs), mesh edges in range and inside one graph)."""
+    n, d = pos["mesh"].shape
+    if num_graphs < 1 or n < 1:
+        raise ValueError(f"need num_graphs >= 1 and at least one mesh node, got {num_graphs} graphs and {n} nodes")
+    _check_shape("mesh_rest", mesh_rest, (n, d))
+    _check_shape("fixed", fixed, (n,))
+    if mesh_edges.dim() != 2 or mesh_edges.size(0) != 2:
+        raise ValueError(f"mesh_edges must have shape [2, E], got {tuple(mesh_edges.shape)}")
+    checks = {}
+    for node_type, p in pos.items():
+        if p.dim() != 2 or p.size(1) != d:
+            raise ValueError(f"{node_type} positions must have shape [*, {d}], got {tuple(p.shape)}")
+        b = batch[node_type]
+        _check_shape(f"{node_type} batch", b, (p.size(0),))
+        checks[f"{node_type} batch sorted and in [0, {num_graphs})"] = (
+            (b[1:] >= b[:-1]).all() & (b.min() >= 0) & (b.max() < num_graphs)
+        )
+    if mesh_edges.size(1) > 0:
+        inside = (mesh_edges.min() >= 0) & (mesh_edges.max() < n)
+        ends = batch["mesh"][mesh_edges.clamp(0, n - 1)]
+        checks[f"mesh_edges in [0, {n}) and inside one graph"] = inside & (ends[0] == ends[1]).all()
+    failed = [name for name, ok in zip(checks, torch.stack(list(checks.values())).tolist()) if not ok]
+    if failed:
+        raise ValueError(f"invalid graph inputs, expected: {'; '.join(failed)}")
+
+
+def _check_caps(most: dict, connectivity: Connectivity) -> None:
+    """Raise when a radius query may have dropped neighbours (one device sync)."""
+    if not most:
+        return
+    cap, radii = connectivity.max_num_neighbors, connectivity.radii()
+    for edge_type, count in zip(most, torch.stack(list(most.values())).tolist()):
+        if count > cap:
+            raise ValueError(
+                f"edge type {edge_type}: a node has more than max_num_neighbors={cap} neighbours within radius "
+                f"{radii[edge_type]} (found {count}); set a larger max_num_neighbors (e.g. {2 * count})"
+            )

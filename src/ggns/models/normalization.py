@@ -1,0 +1,111 @@
+"""Feature normalization: running mean and std of model inputs and targets.
+
+Statistics are exact over everything passed to `update` (Chan's parallel merge of count,
+mean and sum of squared deviations, accumulated in float64), so the order and size of the
+batches do not matter. A `Normalizer` is filled by a statistics pass over the training data,
+then frozen; all its state is in buffers, so it is saved and restored with the checkpoint.
+"""
+from __future__ import annotations
+
+from typing import Mapping, Union
+
+import torch
+from torch import Tensor, nn
+
+NodeOrEdgeType = Union[str, tuple[str, str, str]]
+
+
+def type_key(t: NodeOrEdgeType) -> str:
+    """Module-dict key of a node type ("mesh") or edge type ("collider__near__mesh")."""
+    return t if isinstance(t, str) else "__".join(t)
+
+
+class Normalizer(nn.Module):
+    """Standardizes a feature vector of width `size`: forward(x) = (x - mean) / std.
+
+    `std` is the population std floored at `std_floor`: a feature that is constant in the
+    training data (a one-hot column, a fixed-node flag, a collider at rest) has std 0 and
+    would otherwise divide by zero; with the floor it maps to 0. Before any `update` the
+    normalizer is the identity (mean 0, std 1), e.g. for a type absent from training data.
+    """
+
+    def __init__(self, size: int, std_floor: float = 1e-8):
+        super().__init__()
+        self.size = size
+        self.std_floor = std_floor
+        self.register_buffer("count", torch.zeros((), dtype=torch.int64))
+        self.register_buffer("acc_mean", torch.zeros(size, dtype=torch.float64))
+        self.register_buffer("acc_m2", torch.zeros(size, dtype=torch.float64))  # sum of squared deviations
+        self.register_buffer("mean", torch.zeros(size))  # [F], derived from the accumulators
+        self.register_buffer("std", torch.ones(size))  # [F]
+        self.register_buffer("is_frozen", torch.zeros((), dtype=torch.bool))
+
+    @property
+    def frozen(self) -> bool:
+        return bool(self.is_frozen)
+
+    def freeze(self) -> None:
+        """End the statistics pass; later `update` calls are refused."""
+        self.is_frozen.fill_(True)
+
+    @torch.no_grad()
+    def update(self, x: Tensor) -> None:
+        """Adds the rows of x [M, F] to the statistics."""
+        if self.frozen:
+            raise RuntimeError("Normalizer is frozen; its statistics can no longer change")
+        if x.ndim != 2 or x.shape[1] != self.size:
+            raise ValueError(f"Normalizer of width {self.size} got shape {tuple(x.shape)}, expected [M, {self.size}]")
+        if not torch.isfinite(x).all():
+            raise ValueError("Normalizer.update got NaN or infinite values")
+        n = x.shape[0]
+        if n == 0:
+            return
+        x = x.to(torch.float64)
+        batch_mean = x.mean(0)
+        batch_m2 = (x - batch_mean).square().sum(0)
+        count = self.count.to(torch.float64)
+        total = count + n
+        delta = batch_mean - self.acc_mean
+        self.acc_mean.add_(delta * (n / total))
+        self.acc_m2.add_(batch_m2 + delta.square() * (count * n / total))
+        self.count.add_(n)
+        self.mean.copy_(self.acc_mean)
+        self.std.copy_((self.acc_m2 / total).sqrt().clamp(min=self.std_floor))
+
+    def forward(self, x: Tensor) -> Tensor:
+        """[..., F] -> [..., F] standardized."""
+        if x.shape[-1] != self.size:
+            raise ValueError(f"Normalizer of width {self.size} got shape {tuple(x.shape)}")
+        return (x - self.mean) / self.std
+
+    def inverse(self, y: Tensor) -> Tensor:
+        """[..., F] standardized -> [..., F] in data units."""
+        return y * self.std + self.mean
+
+    def extra_repr(self) -> str:
+        return f"size={self.size}, std_floor={self.std_floor}"
+
+
+class NormalizerDict(nn.Module):
+    """One `Normalizer` per node or edge type, used with dicts {type: features [M, F]}."""
+
+    def __init__(self, sizes: Mapping[NodeOrEdgeType, int], std_floor: float = 1e-8):
+        super().__init__()
+        self.normalizers = nn.ModuleDict({type_key(t): Normalizer(f, std_floor) for t, f in sizes.items()})
+
+    def __getitem__(self, t: NodeOrEdgeType) -> Normalizer:
+        key = type_key(t)
+        if key not in self.normalizers:
+            raise KeyError(f"no normalizer for type {t!r}; known: {list(self.normalizers)}")
+        return self.normalizers[key]
+
+    def update(self, features: Mapping[NodeOrEdgeType, Tensor]) -> None:
+        for t, x in features.items():
+            self[t].update(x)
+
+    def freeze(self) -> None:
+        for normalizer in self.normalizers.values():
+            normalizer.freeze()
+
+    def forward(self, features: Mapping[NodeOrEdgeType, Tensor]) -> dict[NodeOrEdgeType, Tensor]:
+        return {t: self[t](x) for t, x in features.items()}

@@ -1,0 +1,241 @@
+"""Encode-Process-Decode core and Normalizer on small hand-built 2D graphs."""
+from __future__ import annotations
+
+import pytest
+import torch
+from torch_geometric.data import Batch, HeteroData
+
+from ggns.graphs.types import EDGE_TYPES, MESH_EDGE, WORLD_EDGE
+from ggns.models import EncodeProcessDecode, Normalizer, NormalizerDict, graph_features
+from ggns.models.core import mean_aggregate
+
+D = 2
+NODE_DIMS = {"mesh": 1, "collider": D, "point": 0}
+EDGE_DIMS = {t: 2 * (D + 1) if t == MESH_EDGE else D + 1 for t in EDGE_TYPES}
+SIZES = {"mesh": 7, "collider": 3, "point": 5}
+
+
+def make_graph(seed: int, node_types=("mesh", "collider", "point"), edge_types=EDGE_TYPES,
+               sizes=SIZES, edges_per_type: int = 9) -> HeteroData:
+    """Random 2D graph in the builder's format: features [fixed flag], [velocity], []; edge_attr
+    [world rel pos, distance] (+ [mesh rel pos, distance] on mesh edges)."""
+    g = torch.Generator().manual_seed(seed)
+    data = HeteroData()
+    pos = {}
+    for t in node_types:
+        pos[t] = torch.rand(sizes[t], D, generator=g)
+        data[t].pos = pos[t]
+        data[t].x = torch.randn(sizes[t], NODE_DIMS[t], generator=g)
+    for src, rel, dst in edge_types:
+        if src not in node_types or dst not in node_types:
+            continue
+        index = torch.stack([torch.randint(sizes[src], (edges_per_type,), generator=g),
+                             torch.randint(sizes[dst], (edges_per_type,), generator=g)])
+        world = pos[src][index[0]] - pos[dst][index[1]]
+        attr = [world, world.norm(dim=1, keepdim=True)]
+        if (src, rel, dst) == MESH_EDGE:
+            mesh = torch.randn(edges_per_type, D, generator=g)
+            attr += [mesh, mesh.norm(dim=1, keepdim=True)]
+        data[src, rel, dst].edge_index = index
+        data[src, rel, dst].edge_attr = torch.cat(attr, dim=1)
+    return data
+
+
+def make_batch(**kwargs) -> HeteroData:
+    return Batch.from_data_list([make_graph(0, **kwargs), make_graph(1, **kwargs)])
+
+
+def make_model(edge_partition: bool, latent: int = 16, blocks: int = 2) -> EncodeProcessDecode:
+    torch.manual_seed(0)
+    return EncodeProcessDecode(NODE_DIMS, EDGE_DIMS, out_dim=D, latent=latent, blocks=blocks,
+                               edge_partition=edge_partition)
+
+
+VARIANTS = {
+    "all types": {},
+    "no point cloud": {"node_types": ("mesh", "collider")},
+    "some edge types absent": {"edge_types": (MESH_EDGE, ("collider", "near", "mesh"), ("point", "near", "mesh"))},
+    "mesh only, mesh edges": {"node_types": ("mesh",), "edge_types": (MESH_EDGE,)},
+    "mesh only, no edges": {"node_types": ("mesh",), "edge_types": ()},
+}
+
+
+@pytest.mark.parametrize("edge_partition", [False, True], ids=["GGNS", "MGN"])
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_output_shape(edge_partition, variant):
+    data = make_batch(**VARIANTS[variant])
+    out = make_model(edge_partition)(data)
+    assert out.shape == (2 * SIZES["mesh"], D)
+    assert torch.isfinite(out).all()
+
+
+@pytest.mark.parametrize("edge_partition", [False, True], ids=["GGNS", "MGN"])
+def test_permutation_equivariance(edge_partition):
+    """Relabeling the mesh nodes relabels the output rows the same way."""
+    data = make_batch()
+    model = make_model(edge_partition).eval()
+    n = data["mesh"].num_nodes
+    perm = torch.randperm(n, generator=torch.Generator().manual_seed(3))
+    new_index = torch.empty_like(perm)
+    new_index[perm] = torch.arange(n)  # old node perm[i] becomes node i
+    permuted = data.clone()
+    for key in ("x", "pos", "batch"):
+        permuted["mesh"][key] = data["mesh"][key][perm]
+    for t in permuted.edge_types:
+        for row, node_type in ((0, t[0]), (1, t[2])):
+            if node_type == "mesh":
+                permuted[t].edge_index[row] = new_index[data[t].edge_index[row]]
+    with torch.no_grad():
+        torch.testing.assert_close(model(permuted), model(data)[perm])
+
+
+@pytest.mark.parametrize("edge_partition", [False, True], ids=["GGNS", "MGN"])
+def test_isolated_mesh_node(edge_partition):
+    """A mesh node without edges gets zero aggregates: finite output that no other node changes."""
+    data = make_graph(0)
+    isolated = SIZES["mesh"] - 1
+    for t in data.edge_types:
+        keep = torch.ones(data[t].edge_index.shape[1], dtype=torch.bool)
+        for row, node_type in ((0, t[0]), (1, t[2])):
+            if node_type == "mesh":
+                keep &= data[t].edge_index[row] != isolated
+        data[t].edge_index, data[t].edge_attr = data[t].edge_index[:, keep], data[t].edge_attr[keep]
+    model = make_model(edge_partition).eval()
+    with torch.no_grad():
+        out = model(data)
+        data["collider"].x = data["collider"].x + 1.0
+        data["mesh"].x[:isolated] += 1.0
+        changed = model(data)
+    assert torch.isfinite(out).all()
+    torch.testing.assert_close(changed[isolated], out[isolated])
+
+
+@pytest.mark.parametrize("edge_partition", [False, True], ids=["GGNS", "MGN"])
+def test_deterministic_in_eval_mode(edge_partition):
+    data = make_batch()
+    model = make_model(edge_partition).eval()
+    with torch.no_grad():
+        assert torch.equal(model(data), model(data))
+
+
+@pytest.mark.parametrize("edge_partition", [False, True], ids=["GGNS", "MGN"])
+def test_gradient_reaches_every_parameter(edge_partition):
+    model = make_model(edge_partition)
+    model(make_batch()).square().sum().backward()
+    for name, p in model.named_parameters():
+        assert p.grad is not None, name
+        assert p.numel() == 0 or p.grad.abs().sum() > 0, name  # the point encoder's weight is [L, 0]
+
+
+def test_parameter_count():
+    """Paper sizes (latent 128, 5 blocks, 1-layer MLPs), 2D, every node and edge type:
+    node encoders 256 + 384 + 128 (point: bias only), edge encoders 896 + 9 * 512,
+    blocks 5 * (f_E 384->128: 49,280 + f_V 256->128: 32,896), decoder 16,512 + 258
+    -> GGNS 433,922 (the paper's homogeneous GGNS: ~430k).
+    MGN: blocks 1-4 have 10 edge MLPs (492,800), f_V mesh 640->128 (82,048), collider and
+    point 512->128 (65,664 each); the last block only the 4 edge MLPs into mesh and f_V mesh
+    (279,168) -> 3,126,914."""
+    def count(edge_partition):
+        model = EncodeProcessDecode(NODE_DIMS, EDGE_DIMS, out_dim=D, edge_partition=edge_partition)
+        return sum(p.numel() for p in model.parameters())
+
+    assert count(False) == 433_922
+    assert count(True) == 3_126_914
+
+
+def test_mgn_slots_and_ggns_pooled_mean():
+    """MGN: one aggregate slot per incoming edge type; GGNS: one mean over all incoming edges."""
+    block = make_model(True, latent=4, blocks=1).processor[0]
+    assert block.node_mlp["mesh"][0].in_features == 4 * (1 + 4)  # mesh_edge, world, collider->, point->
+    m1, m2 = torch.tensor([[1.0], [3.0]]), torch.tensor([[8.0]])
+    r1, r2 = torch.tensor([0, 2]), torch.tensor([0])
+    pooled = mean_aggregate([(m1, r1), (m2, r2)], 3, torch.zeros(3, 1))
+    assert pooled.flatten().tolist() == [4.5, 0.0, 3.0]
+
+
+def test_unknown_type_refused():
+    model = EncodeProcessDecode({"mesh": 1}, {MESH_EDGE: 6}, out_dim=D, latent=8, blocks=1)
+    with pytest.raises(KeyError, match="world"):
+        model(make_graph(0, node_types=("mesh",), edge_types=(MESH_EDGE, WORLD_EDGE)))
+    with pytest.raises(ValueError):
+        EncodeProcessDecode({"collider": 2}, {}, out_dim=D)
+
+
+def test_input_statistics_travel_with_the_state_dict():
+    model = make_model(False).eval()
+    for seed in range(3):
+        model.input_normalizer.update(graph_features(make_graph(seed)))
+    model.input_normalizer.freeze()
+    restored = make_model(False).eval()
+    restored.load_state_dict(model.state_dict())
+    data = make_batch()
+    with torch.no_grad():
+        assert torch.equal(restored(data), model(data))
+    assert restored.input_normalizer["mesh"].frozen
+
+
+# ---- Normalizer
+
+def test_normalizer_matches_statistics_of_the_concatenation():
+    g = torch.Generator().manual_seed(0)
+    chunks = [torch.randn(m, 3, generator=g) * torch.tensor([1.0, 10.0, 1e-3]) + 1e3 for m in (1, 5, 40, 7)]
+    norm = Normalizer(3)
+    for chunk in chunks:
+        norm.update(chunk)
+    full = torch.cat(chunks).double()
+    torch.testing.assert_close(norm.acc_mean, full.mean(0))
+    torch.testing.assert_close(norm.std.double(), full.std(0, correction=0), rtol=1e-6, atol=0)
+    assert int(norm.count) == len(full)
+
+
+def test_normalizer_floor_inverse_and_identity_before_update():
+    x = torch.stack([torch.randn(20), torch.full((20,), 3.0)], dim=1)  # second column constant
+    norm = Normalizer(2, std_floor=1e-8)
+    assert torch.equal(norm(x), x)  # no statistics yet: identity
+    norm.update(x)
+    assert norm.std[1] == 1e-8 and (norm(x)[:, 1] == 0).all()
+    torch.testing.assert_close(norm.inverse(norm(x)), x)
+
+
+def test_normalizer_state_dict_round_trip_and_freeze():
+    chunks = torch.randn(10, 2), torch.randn(5, 2)
+    norm = Normalizer(2)
+    norm.update(chunks[0])
+    copy = Normalizer(2)
+    copy.load_state_dict(norm.state_dict())
+    x = torch.randn(4, 2)
+    assert torch.equal(copy(x), norm(x))
+    copy.update(chunks[1])  # accumulation continues exactly from the restored state
+    torch.testing.assert_close(copy.acc_mean, torch.cat(chunks).double().mean(0))
+    copy.freeze()
+    with pytest.raises(RuntimeError, match="frozen"):
+        copy.update(chunks[1])
+    restored = Normalizer(2)
+    restored.load_state_dict(copy.state_dict())
+    assert restored.frozen and int(restored.count) == 15
+
+
+def test_normalizer_refuses_bad_input():
+    norm = Normalizer(2)
+    with pytest.raises(ValueError, match="NaN"):
+        norm.update(torch.tensor([[0.0, float("nan")]]))
+    with pytest.raises(ValueError, match="shape"):
+        norm.update(torch.zeros(3, 4))
+    assert int(norm.count) == 0
+
+
+def test_normalizer_zero_width():
+    norm = Normalizer(0)
+    norm.update(torch.zeros(6, 0))
+    assert norm(torch.zeros(6, 0)).shape == (6, 0)
+    assert norm.inverse(torch.zeros(2, 0)).shape == (2, 0)
+
+
+def test_normalizer_dict_keys_edge_types():
+    norms = NormalizerDict({"mesh": 1, ("collider", "near", "mesh"): 3})
+    norms.update({("collider", "near", "mesh"): torch.randn(8, 3) * 5})
+    out = norms({("collider", "near", "mesh"): torch.randn(2, 3), "mesh": torch.ones(2, 1)})
+    assert out["mesh"].shape == (2, 1) and out["collider", "near", "mesh"].shape == (2, 3)
+    assert "normalizers.collider__near__mesh.mean" in norms.state_dict()
+    with pytest.raises(KeyError):
+        norms({"point": torch.zeros(1, 0)})

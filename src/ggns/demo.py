@@ -12,12 +12,11 @@ from .viz import plot_trajectories
 
 def run_demo(output: str | Path = "lightning_logs/demo", preset: str = "plate_small") -> Path:
     config = load_config(preset)
-    for split in config["splits"]:
-        path = split_path(config["output"], split)
-        if path.exists():
-            print(f"{path} exists, reusing it (delete it to regenerate)")
-        else:
-            generate(config, [split])
+    missing = [s for s in config["splits"] if not split_path(config["output"], s).exists()]
+    for split in set(config["splits"]) - set(missing):
+        print(f"{split_path(config['output'], split)} exists, reusing it (delete it to regenerate)")
+    if missing:
+        generate(config, missing)
     with SplitReader(split_path(config["output"], "train")) as reader:
         picked = [reader[i] for i in range(min(3, len(reader)))]
     picture = plot_trajectories(picked, Path(output) / "plate_trajectories.png")

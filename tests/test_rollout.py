@@ -1,0 +1,198 @@
+"""The rollout engine and TrajectoryBatch on real tiny plate data (2 trajectories, T = 8):
+ground truth replay, point-cloud schedules, fixed nodes, divergence errors, model state,
+m+horizon rollouts and batching."""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+from torch_geometric.utils import scatter
+
+from ggns.config import load_config
+from ggns.data.generate import generate
+from ggns.data.schema import SplitReader
+from ggns.evaluation.metrics import m_plus_10_mse
+from ggns.evaluation.rollout import RolloutError, m_plus_10_rollouts, rollout
+from ggns.evaluation.schedules import EveryK, FirstM, Never
+from ggns.graphs.connectivity import load_connectivity
+from ggns.graphs.state import TrajectoryBatch
+
+CONN = load_connectivity("plate_full_graph")
+T = 8
+
+
+@pytest.fixture(scope="module")
+def trajs(tmp_path_factory):
+    cfg = load_config("plate_tiny", [f"output={tmp_path_factory.mktemp('data')}"])
+    (path,) = generate(cfg, ["val"], progress=False)
+    reader = SplitReader(path)
+    return [reader[i] for i in range(len(reader))]
+
+
+@pytest.fixture(scope="module")
+def batch(trajs):
+    return TrajectoryBatch.from_trajectories(trajs, dtype=torch.float64)
+
+
+def step_of(graph, batch) -> int:
+    """The step t of a graph, found from its collider positions (the collider moves every step)."""
+    (t,) = [t for t in range(batch.num_steps) if torch.equal(graph["collider"].pos, batch.collider[t])]
+    return t
+
+
+def true_step(batch, points_only: bool = False):
+    """step_fn returning the true displacement x_{t+1} - x_t of the current step; with points_only,
+    zero displacement for graphs without point nodes."""
+    def step_fn(graph, state):
+        t = step_of(graph, batch)
+        if points_only and "point" not in graph.node_types:
+            return torch.zeros_like(graph["mesh"].pos), state
+        return batch.positions[t + 1] - graph["mesh"].pos, state
+
+    return step_fn
+
+
+def test_batch_layout(trajs, batch):
+    n = [len(t.rest_positions) for t in trajs]
+    assert batch.num_graphs == 2 and batch.num_steps == T
+    assert batch.node_offsets == (0, n[0], n[0] + n[1])
+    assert batch.positions.shape == (T, sum(n), 2) and batch.collider.shape[0] == T
+    assert batch.edges.shape == (2, 2 * sum(len(t.edges) for t in trajs))
+    assert (batch.mesh_batch[batch.edges[0]] == batch.mesh_batch[batch.edges[1]]).all()
+    assert torch.equal(batch.cells[batch.cell_offsets[1]:], torch.as_tensor(trajs[1].cells) + n[0])
+    for t in range(T):
+        assert torch.equal(batch.point_batch[t].bincount(minlength=2),
+                           torch.tensor([len(tr.point_cloud(t)) for tr in trajs]))
+    assert batch.material.tolist() == [tr.poissons_ratio for tr in trajs]
+    assert batch.to("cpu").positions.device.type == "cpu"
+
+
+def test_true_displacement_reproduces_ground_truth(batch):
+    calls = []
+
+    def step_fn(graph, state):  # a step counter, as the test brief prescribes
+        t = len(calls)
+        calls.append(t)
+        return batch.positions[t + 1] - batch.positions[t], state
+
+    positions, _ = rollout(step_fn, batch, EveryK(1), CONN)
+    assert positions.shape == batch.positions.shape and len(calls) == T - 1
+    torch.testing.assert_close(positions, batch.positions, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("schedule", [EveryK(1), EveryK(2), EveryK(5), Never(), FirstM(3)], ids=str)
+def test_schedule_uses_points_exactly_at_scheduled_steps(batch, schedule):
+    seen = []
+
+    def step_fn(graph, state):
+        seen.append("point" in graph.node_types)
+        return torch.zeros_like(graph["mesh"].pos), state
+
+    rollout(step_fn, batch, schedule, CONN)
+    assert seen == schedule.mask(T - 1).tolist()
+
+
+def test_per_trajectory_point_mask(batch):
+    pos = batch.positions[3]
+    graph = batch.graph(3, pos, torch.tensor([False, True]), CONN)
+    assert (graph["point"].batch == 1).all() and len(graph["point"].pos) == (batch.point_batch[3] == 1).sum()
+    assert torch.equal(graph["point"].pos, batch.points[3][batch.point_batch[3] == 1])
+    assert "point" not in batch.graph(3, pos, torch.tensor([False, False]), CONN).node_types
+    assert "point" not in batch.graph(3, pos, False, CONN).node_types
+    assert len(batch.graph(3, pos, True, CONN)["point"].pos) == len(batch.points[3])
+    assert batch.graph(3, pos, True, CONN, with_material=True)["mesh"].x.shape[1] == 2
+    with pytest.raises(IndexError, match="t=7"):
+        batch.graph(T - 1, pos, True, CONN)
+
+
+def test_fixed_nodes_stay_at_true_positions(batch):
+    assert batch.fixed.any()
+
+    def step_fn(graph, state):
+        return torch.where(graph["mesh"].x[:, :1] > 0, 1e3, 0.0).expand_as(graph["mesh"].pos), state
+
+    positions, _ = rollout(step_fn, batch, EveryK(2), CONN)
+    assert torch.equal(positions[:, batch.fixed], batch.positions[:, batch.fixed])
+    assert torch.equal(positions[:, ~batch.fixed], batch.positions[:1, ~batch.fixed].expand(T, -1, -1))
+
+
+def test_non_finite_step_raises_naming_step_and_trajectory(batch):
+    node = int(torch.nonzero(~batch.fixed & (batch.mesh_batch == 1))[0])
+
+    def step_fn(graph, state):
+        state = 0 if state is None else state + 1
+        displacement = torch.zeros_like(graph["mesh"].pos)
+        if state == 2:
+            displacement[node, 0] = float("nan")
+        return displacement, state
+
+    with pytest.raises(RolloutError, match=r"step 2 .*\[1\]"):
+        rollout(step_fn, batch, EveryK(1), CONN)
+
+
+def test_state_is_carried_within_and_reset_between_rollouts(batch):
+    seen = []
+
+    def step_fn(graph, state):
+        seen.append(state)
+        return torch.zeros_like(graph["mesh"].pos), (0 if state is None else state) + 1
+
+    for _ in range(2):
+        _, final = rollout(step_fn, batch, EveryK(1), CONN)
+        assert final == T - 1
+    assert seen == [None, *range(1, T - 1)] * 2
+    seen.clear()
+    _, final = rollout(step_fn, batch, Never(), CONN, start=2, steps=3, state=10)
+    assert seen == [10, 11, 12] and final == 13
+
+
+def test_m_plus_horizon_rollouts_track_then_freeze(batch):
+    horizon = 3
+    preds = m_plus_10_rollouts(true_step(batch, points_only=True), batch, CONN, horizon=horizon)
+    assert sorted(preds) == list(range(T - horizon))
+    for m, pred in preds.items():
+        assert pred.shape == (m + horizon + 1, *batch.positions.shape[1:])
+        torch.testing.assert_close(pred[: m + 1], batch.positions[: m + 1], rtol=0, atol=1e-12)
+        free = pred[:, ~batch.fixed]
+        assert torch.equal(free[m + 1 :], free[m : m + 1].expand(horizon, -1, -1))
+    stacked = {m: p[None] for m, p in preds.items()}  # one "trajectory" of all nodes, for the metric
+    m_plus_10_mse(stacked, batch.positions[None], horizon=horizon)
+
+
+def test_m_plus_horizon_model_state_is_copied(batch):
+    """Blind branches start from a copy of the chain's model state: in-place updates inside a
+    branch never reach the chain or other branches."""
+    seen = []
+
+    def step_fn(graph, state):
+        state = state if state is not None else {"count": torch.zeros(())}
+        seen.append(("point" in graph.node_types, int(state["count"])))
+        state["count"] += 1  # in place
+        return torch.zeros_like(graph["mesh"].pos), state
+
+    m_plus_10_rollouts(step_fn, batch, CONN, horizon=3, starts=[1, 2])
+    # chain step 0; branch m=1 (counts 1..3); chain step 1 still sees 1; branch m=2 (2..4)
+    assert seen == [(True, 0), (False, 1), (False, 2), (False, 3), (True, 1), (False, 2), (False, 3), (False, 4)]
+
+
+def test_mismatched_step_counts_raise(trajs):
+    short = dataclasses.replace(trajs[1], positions=trajs[1].positions[:5], collider_positions=trajs[1].collider_positions[:5],
+                                point_offsets=trajs[1].point_offsets[:6])
+    with pytest.raises(ValueError, match="equal step counts"):
+        TrajectoryBatch.from_trajectories([trajs[0], short])
+
+
+def test_batched_rollout_equals_one_at_a_time(trajs):
+    def step_fn(graph, state):
+        b = graph["mesh"].batch
+        velocity = scatter(graph["collider"].x, graph["collider"].batch, dim=0, dim_size=graph.num_graphs, reduce="mean")
+        out = velocity[b] * (1 + graph["mesh"].pos.square().sum(1, keepdim=True))
+        if "point" in graph.node_types:
+            centre = scatter(graph["point"].pos, graph["point"].batch, dim=0, dim_size=graph.num_graphs, reduce="mean")
+            out = out + 0.01 * (centre[b] - graph["mesh"].pos)
+        return out, state
+
+    batched, _ = rollout(step_fn, TrajectoryBatch.from_trajectories(trajs), EveryK(2), CONN)
+    single = [rollout(step_fn, TrajectoryBatch.from_trajectories([t]), EveryK(2), CONN)[0] for t in trajs]
+    torch.testing.assert_close(batched, torch.cat(single, dim=1), rtol=1e-6, atol=1e-6)

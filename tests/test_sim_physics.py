@@ -26,7 +26,6 @@ def test_uniaxial_compression_gives_the_linear_elastic_strain_ratio(dim, nu):
     fixed = np.zeros_like(X, dtype=bool)
     fixed[bottom | top, axial] = True  # rollers: normal displacement prescribed
     fixed[np.all(X[:, :axial] == 0.0, axis=1) & bottom, :] = True  # pin one corner against rigid motion
-    pinned_edge = np.all(X[:, :axial] == 0.0, axis=1)
     if dim == 3:  # and the rotation about the axial axis
         fixed[(X[:, 0] == 1.0) & (X[:, 1] == 0.0) & bottom, 1] = True
     x0 = X.copy()
@@ -42,7 +41,6 @@ def test_uniaxial_compression_gives_the_linear_elastic_strain_ratio(dim, nu):
         assert eps_lateral < 0  # the auxetic block contracts sideways under compression
     else:
         assert eps_lateral > -1e-6
-    assert pinned_edge.any()
 
 
 @pytest.mark.parametrize("dim", [2, 3])

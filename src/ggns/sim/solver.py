@@ -173,10 +173,10 @@ class Simulator:
             x_pred = torch.where(fixed, x, x_pred)
         M = self.mass_dofs.view_as(x)
         _, R_start = body.gradient(x)
-        D = cfg_damping = body.material.rayleigh_stiffness * self._stiffness(R_start)
+        D = body.material.rayleigh_stiffness * self._stiffness(R_start)
         D = D + torch.diag(body.material.rayleigh_mass * self.mass_dofs)
         Hconst = D / h + torch.diag(self.mass_dofs / h**2)
-        del cfg_damping
+        node_dofs = torch.arange(body.num_nodes * body.dim).view(-1, body.dim)
 
         def potential(y):
             dy, dn = (y - x_pred).reshape(-1), (y - x).reshape(-1)
@@ -190,10 +190,8 @@ class Simulator:
             g = M * (y - x_pred) / h**2 + ge - self.gravity_force + (D @ dn).view_as(y) / h
             _, gc, hc, _ = self._contact(y, colliders, True)
             H = Hconst + self._stiffness(R)
-            d = body.dim
             for blocks in hc:
-                idx = torch.arange(body.num_nodes * d).view(-1, d)
-                H[idx[:, :, None], idx[:, None, :]] += blocks
+                H[node_dofs[:, :, None], node_dofs[:, None, :]] += blocks
             return g + gc, H
 
         newton_total, y = 0, x_pred

@@ -5,7 +5,7 @@ import pytest
 import torch
 from torch_geometric.data import Batch, HeteroData
 
-from ggns.graphs.types import EDGE_TYPES, MESH_EDGE, WORLD_EDGE
+from ggns.graphs.types import EDGE_TYPES, MESH_EDGE, NODE_TYPES, WORLD_EDGE
 from ggns.models import EncodeProcessDecode, Normalizer, NormalizerDict, graph_features
 from ggns.models.core import mean_aggregate
 
@@ -45,10 +45,11 @@ def make_batch(**kwargs) -> HeteroData:
     return Batch.from_data_list([make_graph(0, **kwargs), make_graph(1, **kwargs)])
 
 
-def make_model(edge_partition: bool, latent: int = 16, blocks: int = 2) -> EncodeProcessDecode:
+def make_model(edge_partition: bool, latent: int = 16, blocks: int = 2,
+               type_encoding: str = "per_type") -> EncodeProcessDecode:
     torch.manual_seed(0)
     return EncodeProcessDecode(NODE_DIMS, EDGE_DIMS, out_dim=D, latent=latent, blocks=blocks,
-                               edge_partition=edge_partition)
+                               edge_partition=edge_partition, type_encoding=type_encoding)
 
 
 VARIANTS = {
@@ -62,18 +63,20 @@ VARIANTS = {
 
 @pytest.mark.parametrize("edge_partition", [False, True], ids=["GGNS", "MGN"])
 @pytest.mark.parametrize("variant", VARIANTS)
-def test_output_shape(edge_partition, variant):
+@pytest.mark.parametrize("type_encoding", ["per_type", "one_hot"])
+def test_output_shape(type_encoding, edge_partition, variant):
     data = make_batch(**VARIANTS[variant])
-    out = make_model(edge_partition)(data)
+    out = make_model(edge_partition, type_encoding=type_encoding)(data)
     assert out.shape == (2 * SIZES["mesh"], D)
     assert torch.isfinite(out).all()
 
 
 @pytest.mark.parametrize("edge_partition", [False, True], ids=["GGNS", "MGN"])
-def test_permutation_equivariance(edge_partition):
+@pytest.mark.parametrize("type_encoding", ["per_type", "one_hot"])
+def test_permutation_equivariance(type_encoding, edge_partition):
     """Relabeling the mesh nodes relabels the output rows the same way."""
     data = make_batch()
-    model = make_model(edge_partition).eval()
+    model = make_model(edge_partition, type_encoding=type_encoding).eval()
     n = data["mesh"].num_nodes
     perm = torch.randperm(n, generator=torch.Generator().manual_seed(3))
     new_index = torch.empty_like(perm)
@@ -119,8 +122,9 @@ def test_deterministic_in_eval_mode(edge_partition):
 
 
 @pytest.mark.parametrize("edge_partition", [False, True], ids=["GGNS", "MGN"])
-def test_gradient_reaches_every_parameter(edge_partition):
-    model = make_model(edge_partition)
+@pytest.mark.parametrize("type_encoding", ["per_type", "one_hot"])
+def test_gradient_reaches_every_parameter(type_encoding, edge_partition):
+    model = make_model(edge_partition, type_encoding=type_encoding)
     model(make_batch()).square().sum().backward()
     for name, p in model.named_parameters():
         assert p.grad is not None, name
@@ -131,15 +135,18 @@ def test_parameter_count():
     """Paper sizes (latent 128, 5 blocks, 1-layer MLPs), 2D, every node and edge type:
     node encoders 256 + 384 + 128 (point: bias only), edge encoders 896 + 9 * 512,
     blocks 5 * (f_E 384->128: 49,280 + f_V 256->128: 32,896), decoder 16,512 + 258
-    -> GGNS 433,922 (the paper's homogeneous GGNS: ~430k).
+    -> GGNS 433,922. One-hot encoders instead: nodes (3 + 2)->128 (768), edges (10 + 6)->128
+    (2,176) -> 430,594 (the paper's homogeneous GGNS: ~430k).
     MGN: blocks 1-4 have 10 edge MLPs (492,800), f_V mesh 640->128 (82,048), collider and
     point 512->128 (65,664 each); the last block only the 4 edge MLPs into mesh and f_V mesh
     (279,168) -> 3,126,914."""
-    def count(edge_partition):
-        model = EncodeProcessDecode(NODE_DIMS, EDGE_DIMS, out_dim=D, edge_partition=edge_partition)
+    def count(edge_partition, type_encoding="per_type"):
+        model = EncodeProcessDecode(NODE_DIMS, EDGE_DIMS, out_dim=D, edge_partition=edge_partition,
+                                    type_encoding=type_encoding)
         return sum(p.numel() for p in model.parameters())
 
     assert count(False) == 433_922
+    assert count(False, "one_hot") == 430_594
     assert count(True) == 3_126_914
 
 
@@ -159,6 +166,72 @@ def test_unknown_type_refused():
         model(make_graph(0, node_types=("mesh",), edge_types=(MESH_EDGE, WORLD_EDGE)))
     with pytest.raises(ValueError):
         EncodeProcessDecode({"collider": 2}, {}, out_dim=D)
+
+
+def test_bad_type_encoding_refused():
+    with pytest.raises(ValueError, match="per_type.*one_hot"):
+        make_model(False, type_encoding="onehot")
+
+
+def test_one_hot_encoder_input_layout():
+    """Each type's row: [one-hot of its position among the model's types, normalized features,
+    zeros up to the widest input]; all types share one Linear."""
+    model = make_model(False, type_encoding="one_hot")
+    for seed in range(3):
+        model.input_normalizer.update(graph_features(make_graph(seed)))
+    assert isinstance(model.node_encoder.linear, torch.nn.Linear)
+    assert model.node_encoder.linear.in_features == 3 + 2 and model.edge_encoder.linear.in_features == 10 + 6
+    data = make_graph(5)
+    features = model.input_normalizer(graph_features(data))
+    with torch.no_grad():
+        encoded = model.encode(data)
+    for encoder, types, width, latents in ((model.node_encoder, data.node_types, 2, encoded[0]),
+                                           (model.edge_encoder, data.edge_types, 6, encoded[1])):
+        inputs = encoder.inputs({t: features[t] for t in types})
+        slots = NODE_TYPES if encoder is model.node_encoder else EDGE_TYPES
+        for t in types:
+            n, f = len(features[t]), features[t].shape[1]
+            expected = torch.cat([torch.eye(len(slots))[slots.index(t)].expand(n, -1), features[t],
+                                  torch.zeros(n, width - f)], dim=1)
+            assert torch.equal(inputs[t], expected), t
+            torch.testing.assert_close(latents[t], encoder.linear(expected).detach())
+    assert model.input_normalizer["mesh"].std.ne(1).all()  # the features were really rescaled
+
+
+def test_one_hot_slot_is_fixed_by_the_model_not_the_graph():
+    """A graph lacking some types encodes the types it has exactly as a full graph does."""
+    model = make_model(False, type_encoding="one_hot").eval()
+    full = make_graph(0)
+    partial = full.node_type_subgraph(["mesh", "point"])  # no collider, no edges touching it
+    assert "collider" not in partial.node_types and WORLD_EDGE in partial.edge_types
+    with torch.no_grad():
+        (x_full, e_full), (x_part, e_part) = model.encode(full), model.encode(partial)
+    assert set(x_part) == {"mesh", "point"}
+    for t in x_part:
+        assert torch.equal(x_part[t], x_full[t]), t
+    for t in e_part:
+        assert torch.equal(e_part[t], e_full[t]), t
+    point_input = model.node_encoder.inputs({"point": partial["point"].x})["point"]
+    assert point_input[:, :3].argmax(1).eq(NODE_TYPES.index("point")).all()  # not slot 1 of (mesh, point)
+
+
+def test_one_hot_distinguishes_types_with_equal_features():
+    """Same features, different type -> different encoding; swapping the data of two edge types
+    changes the output (with a shared encoder and pooled mean, only the one-hot tells them apart)."""
+    edge_dims = {MESH_EDGE: 3, WORLD_EDGE: 3}
+    torch.manual_seed(0)
+    model = EncodeProcessDecode({"mesh": 1}, edge_dims, out_dim=D, latent=16, blocks=2,
+                                type_encoding="one_hot").eval()
+    data = make_graph(0, node_types=("mesh",), edge_types=(MESH_EDGE, WORLD_EDGE))
+    data[MESH_EDGE].edge_attr = data[MESH_EDGE].edge_attr[:, 3:]  # both [rel pos, distance]
+    swapped = data.clone()
+    for a, b in ((MESH_EDGE, WORLD_EDGE), (WORLD_EDGE, MESH_EDGE)):
+        swapped[a].edge_index, swapped[a].edge_attr = data[b].edge_index, data[b].edge_attr
+    attr = data[WORLD_EDGE].edge_attr
+    with torch.no_grad():
+        encoded = model.edge_encoder({MESH_EDGE: attr, WORLD_EDGE: attr})
+        assert not torch.allclose(encoded[MESH_EDGE], encoded[WORLD_EDGE])
+        assert not torch.allclose(model(swapped), model(data))
 
 
 def test_input_statistics_travel_with_the_state_dict():

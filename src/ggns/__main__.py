@@ -1,5 +1,7 @@
 """Command line: `python -m ggns <command>` (or the `ggns` console script).
 
+    fit, validate, test, predict
+              the Lightning CLI for the simulators (`python -m ggns fit --help`; see ggns.cli)
     generate  simulate and observe dataset splits into HDF5 files
     bench     benchmarks (`bench sim`: simulator and dataset generation speed)
     demo      the README's main job on a small embedded default
@@ -40,6 +42,12 @@ def _demo(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
+    given = sys.argv[1:] if argv is None else list(argv)
+    if given and given[0] in ("fit", "validate", "test", "predict"):
+        from .cli import build_cli
+
+        build_cli(argv)  # None: LightningCLI reads sys.argv itself
+        return
     parser = argparse.ArgumentParser(prog="ggns", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 

@@ -7,6 +7,7 @@ All coordinates are in the normalized task space [-1, 1]^d.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,3 +41,17 @@ class Trajectory:
     def point_cloud(self, t: int) -> np.ndarray:
         """The point cloud at step t, [P_t, d]."""
         return self.points[self.point_offsets[t] : self.point_offsets[t + 1]]
+
+    def steps(self, start: int, stop: int) -> Trajectory:
+        """The trajectory restricted to states start..stop-1 (a window for training samples)."""
+        if not 0 <= start < stop <= self.num_steps:
+            raise IndexError(f"steps [{start}, {stop}) outside the {self.num_steps} states of this trajectory")
+        offsets = self.point_offsets[start : stop + 1]
+        return dataclasses.replace(
+            self,
+            positions=self.positions[start:stop],
+            collider_positions=self.collider_positions[start:stop],
+            points=self.points[offsets[0] : offsets[-1]],
+            point_offsets=offsets - offsets[0],
+            diagnostics={k: v[start:stop] for k, v in self.diagnostics.items()},
+        )

@@ -51,6 +51,23 @@ def rollout(step_fn: StepFn, batch: TrajectoryBatch, schedule: Schedule, connect
     return torch.stack(out), state
 
 
+def one_step_predictions(step_fn: StepFn, batch: TrajectoryBatch, schedule: Schedule, connectivity: Connectivity,
+                         with_material: bool = False) -> Tensor:
+    """Teacher-forced predictions: state t+1 predicted from the *true* state t for every t, with the
+    point clouds of `schedule` and any model state (an LSTM's) carried along the true trajectory.
+    Returns [T, sumN, d]: index 0 is the true S_0, index t the prediction of S_t."""
+    fixed = batch.fixed[:, None]
+    out, state = [batch.positions[0]], None
+    with torch.no_grad():
+        for t in range(batch.num_steps - 1):
+            graph = batch.graph(t, batch.positions[t], schedule.uses_points(t), connectivity, with_material)
+            displacement, state = step_fn(graph, state)
+            pos = torch.where(fixed, batch.positions[t + 1], batch.positions[t] + displacement)
+            _check_finite(pos, batch, t)
+            out.append(pos)
+    return torch.stack(out)
+
+
 def m_plus_10_rollouts(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Connectivity, horizon: int = 10,
                        starts: list[int] | None = None, with_material: bool = False) -> dict[int, Tensor]:
     """The m+horizon rollouts of `metrics.m_plus_10_mse`: one chain with point clouds every step

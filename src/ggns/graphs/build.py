@@ -7,6 +7,7 @@ Conventions (see `ggns.graphs.types` for the vocabulary):
   node, sorted). mesh.x = [fixed flag] (+ [Poisson ratio of its graph] for MGN(M)), F = 1 or 2;
   collider.x = velocity (next - current position), F = d; point.x has F = 0.
 - An edge type exists only when its radius is > 0, both node types exist and it has edges.
+  Points are left out altogether when no point edge type has a radius > 0 (e.g. MGN).
   `.edge_index` [2, E]: row 0 indexes the source node type, row 1 the destination node type;
   messages flow source -> destination. Radius edges never cross graphs and have no self loops.
 - `.edge_attr` columns: [pos[src] - pos[dst] (d), its norm (1)] on every edge type; MESH_EDGE
@@ -74,7 +75,7 @@ def build_graph(
         _check_shape("collider_next", collider_next, collider_pos.shape)
         pos["collider"], batch["collider"] = collider_pos, collider_batch
         x["collider"] = collider_next - collider_pos
-    if points is not None and points.size(0) > 0:
+    if points is not None and points.size(0) > 0 and connectivity.uses_points:
         if point_batch is None:
             raise ValueError("points need point_batch")
         pos["point"], batch["point"] = points, point_batch

@@ -51,6 +51,11 @@ class Connectivity:
             raise ValueError(f"connectivity settings: unknown keys {unknown}, missing keys {missing} (expected {sorted(fields)})")
         return cls(**values)
 
+    @property
+    def uses_points(self) -> bool:
+        """Whether any edge type touching point nodes has a radius > 0 (else graphs get no points)."""
+        return any(r > 0 and "point" in (t[0], t[2]) for t, r in self.radii().items())
+
     def radii(self) -> dict[tuple[str, str, str], float]:
         """Radius of every radius-built edge type (all of EDGE_TYPES but MESH_EDGE), 0 = absent."""
         out = {}

@@ -1,23 +1,28 @@
 """The learned core shared by GGNS and MGN: Encode-Process-Decode on a heterogeneous graph.
 
-Encoder: one linear map per node type and per edge type embeds the (normalized) inputs of
-any width to the same latent size. Processor: `blocks` GraphNetBlocks with residuals:
+Encoder, on the (normalized) inputs, by `type_encoding`:
+- "per_type" (MGN): one linear map per node type and per edge type embeds inputs of any width
+  to the same latent size.
+- "one_hot" (the paper's GGNS): the inputs of the homogeneous graph. A node of type t gets
+  [one-hot of t's position among the model's node types (in `NODE_TYPES` order), its features,
+  zeros up to the model's widest node input], and one shared linear map embeds all nodes; edges
+  likewise with the model's edge types (`EDGE_TYPES` order). The slot of a type is fixed by the
+  model, not by the types a graph holds.
+Processor: `blocks` GraphNetBlocks with residuals:
     e' = e + f_E([x_src, x_dst, e]),   x' = x + f_V([x, mean of incoming e']).
 Decoder, on the `mesh` latents only: the processor's MLP, then Linear(latent, out_dim) (paper:
 Linear(128, 128), LeakyReLU, Linear(128, d)), [N_mesh, latent] -> [N_mesh, out_dim].
 
-`edge_partition` selects the model family:
+`edge_partition` selects the processor:
 - False (GGNS): one shared f_E and one shared f_V for all types, and all incoming edges of a
-  node are pooled into one mean, i.e. the paper's homogeneous graph. The type identity that
-  GGNS feeds as one-hot features is carried by the per-type encoders: a one-hot column
-  through a shared linear encoder adds a per-type bias, which each type's own encoder has
-  (the paper's shared encoder also ties the weights of columns that types share; these don't).
+  node are pooled into one mean, i.e. the paper's homogeneous graph.
 - True (MGN): one f_E per edge type; f_V per node type, on [x, one mean per incoming edge
   type] with a fixed slot per edge type (in `EDGE_TYPES` order), zeros when that type is absent.
+The paper's GGNS is type_encoding="one_hot" with edge_partition=False; MGN is "per_type" with True.
 
 Inputs are read from `data[node_type].x` and `data[edge_type].edge_attr` and normalized
-inside by `input_normalizer`, so a checkpoint carries its statistics and every caller
-(training, rollout) feeds raw graphs. Fill it before training with
+inside by `input_normalizer` (per type, before any one-hot or padding), so a checkpoint carries
+its statistics and every caller (training, rollout) feeds raw graphs. Fill it before training with
 `input_normalizer.update(graph_features(batch))` over the training set, then `.freeze()`.
 Any node or edge type the model was built for may be absent from a graph; `mesh` must be there.
 """
@@ -34,6 +39,7 @@ from ggns.graphs.types import EDGE_TYPES, NODE_TYPES
 from ggns.models.normalization import NodeOrEdgeType, NormalizerDict, type_key
 
 EdgeType = tuple[str, str, str]
+TYPE_ENCODINGS = ("per_type", "one_hot")
 
 
 def mlp(in_dim: int, out_dim: int, layers: int = 1, activation: type[nn.Module] = nn.LeakyReLU) -> nn.Sequential:
@@ -56,6 +62,38 @@ def linear_encoder(in_dim: int, latent: int) -> nn.Linear:
 def graph_features(data: HeteroData) -> dict[NodeOrEdgeType, Tensor]:
     """Raw model inputs of a graph: {node type: x [N, F], edge type: edge_attr [E, F]}."""
     return {**{t: data[t].x for t in data.node_types}, **{t: data[t].edge_attr for t in data.edge_types}}
+
+
+def apply_shared(f: nn.Module, inputs: dict) -> dict:
+    """One module f on the inputs {type: [M_t, F]} of all types at once -> {type: [M_t, F']}."""
+    if not inputs:
+        return {}
+    out = f(torch.cat(list(inputs.values())))
+    return dict(zip(inputs, out.split([len(v) for v in inputs.values()])))
+
+
+class OneHotEncoder(nn.Module):
+    """One Linear(len(types) + width, latent) shared by several node (or edge) types: the rows
+    [M, F_t] of type t enter as [one-hot of t's position in `types`, features, zeros to `width`]."""
+
+    def __init__(self, types: list[NodeOrEdgeType], width: int, latent: int):
+        super().__init__()
+        self.types, self.width = list(types), width
+        self.linear = linear_encoder(len(self.types) + width, latent)
+
+    def inputs(self, features: Mapping[NodeOrEdgeType, Tensor]) -> dict[NodeOrEdgeType, Tensor]:
+        """{type: [M, F_t]} -> {type: [M, len(types) + width]}, the rows the shared Linear sees."""
+        out = {}
+        for t, x in features.items():
+            row = x.new_zeros(len(x), len(self.types) + self.width)
+            row[:, self.types.index(t)] = 1
+            row[:, len(self.types):len(self.types) + x.shape[1]] = x
+            out[t] = row
+        return out
+
+    def forward(self, features: Mapping[NodeOrEdgeType, Tensor]) -> dict[NodeOrEdgeType, Tensor]:
+        """{type: [M, F_t]} -> {type: [M, latent]}."""
+        return apply_shared(self.linear, self.inputs(features))
 
 
 def mean_aggregate(messages: list[tuple[Tensor, Tensor]], num_nodes: int, like: Tensor) -> Tensor:
@@ -85,14 +123,36 @@ class GraphNetBlock(nn.Module):
             self.edge_mlp = mlp(3 * latent, latent, mlp_layers)
             self.node_mlp = mlp(2 * latent, latent, mlp_layers)
 
-    def _apply(self, f: nn.Module, inputs: dict) -> dict:
+    def _run_mlp(self, f: nn.Module, inputs: dict) -> dict:
         """f per type (a ModuleDict) or one shared f on all types at once."""
         if isinstance(f, nn.ModuleDict):
             return {t: f[type_key(t)](v) for t, v in inputs.items()}
-        if not inputs:
-            return {}
-        out = f(torch.cat(list(inputs.values())))
-        return dict(zip(inputs, out.split([len(v) for v in inputs.values()])))
+        return apply_shared(f, inputs)
+
+    def _edge_updates(self, x: dict[str, Tensor], e: dict[EdgeType, Tensor],
+                      edge_index: dict[EdgeType, Tensor]) -> dict[EdgeType, Tensor]:
+        """f_E([x_src, x_dst, e]) per edge type, with f_E's first Linear split by input block: the
+        node blocks are applied once per node and gathered per edge, so the per-edge work is one
+        [L, L] product instead of a [3L, L] product on a concatenation (same function and weights)."""
+        shared_projection: dict[str, Tensor] = {}  # node type -> [N, 2L]: [x W_src^T, x W_dst^T] (shared f_E)
+        updates = {}
+        for t, index in edge_index.items():
+            if t not in self.edge_types:
+                continue
+            f = self.edge_mlp[type_key(t)] if self.edge_partition else self.edge_mlp
+            first, latent = f[0], e[t].shape[1]
+            w_node, w_edge = first.weight[:, : 2 * latent], first.weight[:, 2 * latent:]
+            if self.edge_partition:
+                src = x[t[0]] @ w_node[:, :latent].T
+                dst = x[t[2]] @ w_node[:, latent:].T
+            else:
+                for n in (t[0], t[2]):
+                    if n not in shared_projection:
+                        shared_projection[n] = x[n] @ torch.cat([w_node[:, :latent], w_node[:, latent:]]).T
+                src, dst = shared_projection[t[0]][:, :latent], shared_projection[t[2]][:, latent:]
+            h = src.index_select(0, index[0]) + dst.index_select(0, index[1]) + nn.functional.linear(e[t], w_edge, first.bias)
+            updates[t] = f[1:](h)
+        return updates
 
     def _aggregates(self, node_type: str, x: Tensor, e: dict[EdgeType, Tensor],
                     edge_index: dict[EdgeType, Tensor]) -> list[Tensor]:
@@ -104,12 +164,10 @@ class GraphNetBlock(nn.Module):
     def forward(self, x: dict[str, Tensor], e: dict[EdgeType, Tensor],
                 edge_index: dict[EdgeType, Tensor]) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
         """x {node type: [N, L]}, e {edge type: [E, L]}, edge_index {edge type: [2, E]} -> (x', e')."""
-        edge_inputs = {t: torch.cat([x[t[0]][i[0]], x[t[2]][i[1]], e[t]], dim=1)
-                       for t, i in edge_index.items() if t in self.edge_types}
-        e = {t: e[t] + update for t, update in self._apply(self.edge_mlp, edge_inputs).items()}
+        e = {t: e[t] + update for t, update in self._edge_updates(x, e, edge_index).items()}
         node_inputs = {n: torch.cat([v, *self._aggregates(n, v, e, edge_index)], dim=1)
                        for n, v in x.items() if n in self.node_types}
-        x = {n: x[n] + update for n, update in self._apply(self.node_mlp, node_inputs).items()}
+        x = {n: x[n] + update for n, update in self._run_mlp(self.node_mlp, node_inputs).items()}
         return x, e
 
 
@@ -117,14 +175,16 @@ class EncodeProcessDecode(nn.Module):
     """Graph [HeteroData] -> per-mesh-node output [N_mesh, out_dim] (see module docstring).
 
     node_dims / edge_dims: input width per node / edge type the model accepts (types from
-    `NODE_TYPES` / `EDGE_TYPES`; `mesh` required). Paper defaults: latent 128, 5 blocks,
-    1-layer MLPs.
+    `NODE_TYPES` / `EDGE_TYPES`; `mesh` required). type_encoding: "per_type" or "one_hot".
+    Paper defaults: latent 128, 5 blocks, 1-layer MLPs.
     """
 
     def __init__(self, node_dims: Mapping[str, int], edge_dims: Mapping[EdgeType, int], out_dim: int,
                  latent: int = 128, blocks: int = 5, mlp_layers: int = 1, edge_partition: bool = False,
-                 std_floor: float = 1e-8):
+                 std_floor: float = 1e-8, type_encoding: str = "per_type"):
         super().__init__()
+        if type_encoding not in TYPE_ENCODINGS:
+            raise ValueError(f"type_encoding must be one of {TYPE_ENCODINGS}, got {type_encoding!r}")
         unknown = [t for t in [*node_dims, *edge_dims] if t not in NODE_TYPES + EDGE_TYPES]
         if unknown or "mesh" not in node_dims:
             raise ValueError(f"node types must include 'mesh' and come from NODE_TYPES/EDGE_TYPES; unknown: {unknown}")
@@ -134,8 +194,14 @@ class EncodeProcessDecode(nn.Module):
         node_types = [t for t in NODE_TYPES if t in node_dims]
         edge_types = [t for t in EDGE_TYPES if t in edge_dims]
         self.input_normalizer = NormalizerDict({**node_dims, **edge_dims}, std_floor)
-        self.node_encoder = nn.ModuleDict({t: linear_encoder(node_dims[t], latent) for t in node_types})
-        self.edge_encoder = nn.ModuleDict({type_key(t): linear_encoder(edge_dims[t], latent) for t in edge_types})
+        self.type_encoding = type_encoding
+        if type_encoding == "one_hot":
+            self.node_encoder = OneHotEncoder(node_types, max(node_dims.values()), latent)
+            self.edge_encoder = OneHotEncoder(edge_types, max(edge_dims.values(), default=0), latent)
+        else:
+            self.node_encoder = nn.ModuleDict({t: linear_encoder(node_dims[t], latent) for t in node_types})
+            self.edge_encoder = nn.ModuleDict(
+                {type_key(t): linear_encoder(edge_dims[t], latent) for t in edge_types})
         # The last block updates only what reaches the decoder: mesh nodes and edges into mesh.
         last = (["mesh"], [t for t in edge_types if t[2] == "mesh"])
         self.processor = nn.ModuleList(
@@ -143,11 +209,19 @@ class EncodeProcessDecode(nn.Module):
             for b in range(blocks))
         self.decoder = nn.Sequential(mlp(latent, latent, mlp_layers), nn.Linear(latent, out_dim))
 
+    def encode(self, data: HeteroData) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
+        """Graph -> encoded latents ({node type: [N, latent]}, {edge type: [E, latent]})."""
+        features = self.input_normalizer(graph_features(data))  # KeyError for a type the model lacks
+        nodes = {t: features[t] for t in data.node_types}
+        edges = {t: features[t] for t in data.edge_types}
+        if self.type_encoding == "one_hot":
+            return self.node_encoder(nodes), self.edge_encoder(edges)
+        return ({t: self.node_encoder[t](v) for t, v in nodes.items()},
+                {t: self.edge_encoder[type_key(t)](v) for t, v in edges.items()})
+
     def encode_process(self, data: HeteroData) -> Tensor:
         """Graph -> mesh node latents [N_mesh, latent] after the processor."""
-        features = self.input_normalizer(graph_features(data))  # KeyError for a type the model lacks
-        x = {t: self.node_encoder[t](features[t]) for t in data.node_types}
-        e = {t: self.edge_encoder[type_key(t)](features[t]) for t in data.edge_types}
+        x, e = self.encode(data)
         edge_index = {t: data[t].edge_index for t in data.edge_types}
         for block in self.processor:
             x, e = block(x, e, edge_index)

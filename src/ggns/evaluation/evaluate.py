@@ -1,0 +1,114 @@
+"""The paper's evaluation of a step function on a batch of trajectories, used by `test`, the
+rollout callbacks and the benchmarks alike.
+
+`evaluate_batch` returns per-trajectory values {metric name: float64 [B]}; `MetricTable`
+accumulates them over batches and reports the mean (and std over trajectories). Names:
+    one_step_mse        teacher-forced next-step error (`one_step_predictions`)
+    rollout_mse_<s>     full-rollout error from S_0 under point-cloud schedule s
+    rollout_iou_<s>     mean IoU over the predicted states of that rollout (2D only)
+    m10_mse             the m+10-step error (`metrics.m_plus_10_mse`), averaged over m
+with <s> = k1, k2, k5, k10 (a point cloud every k steps), never, first<m> (`schedule_key`).
+Errors average over all mesh nodes and coordinates, as in the paper (fixed nodes are set to
+their known positions and contribute zero error).
+"""
+from __future__ import annotations
+
+import math
+from typing import Iterable
+
+import torch
+from torch import Tensor
+
+from ..graphs.connectivity import Connectivity
+from ..graphs.state import TrajectoryBatch
+from .metrics import batch_iou, m_plus_10_mse, m_plus_10_starts, one_step_mse, rollout_mse
+from .rollout import StepFn, m_plus_10_rollouts, one_step_predictions, rollout
+from .schedules import EveryK, FirstM, Never, Schedule
+
+PAPER_SCHEDULES = (EveryK(1), EveryK(2), EveryK(5), EveryK(10), Never())
+
+
+def schedule_key(schedule: Schedule) -> str:
+    """Metric-name suffix of a schedule: EveryK(5) -> "k5", Never() -> "never", FirstM(3) -> "first3"."""
+    if isinstance(schedule, EveryK):
+        return f"k{schedule.k}"
+    if isinstance(schedule, FirstM):
+        return f"first{schedule.m}"
+    if isinstance(schedule, Never):
+        return "never"
+    raise TypeError(f"unknown schedule {schedule!r}")
+
+
+def split_trajectories(positions: Tensor, batch: TrajectoryBatch) -> list[Tensor]:
+    """[T, sumN, d] -> B tensors [1, T, N_b, d] (the metrics' layout), on the CPU."""
+    o = batch.node_offsets
+    positions = positions.detach().cpu()
+    return [positions[None, :, o[b]:o[b + 1]] for b in range(batch.num_graphs)]
+
+
+def trajectory_cells(batch: TrajectoryBatch, b: int) -> Tensor:
+    """Cells of trajectory b with local node indices, on the CPU."""
+    c, o = batch.cell_offsets, batch.node_offsets
+    return (batch.cells[c[b]:c[b + 1]] - o[b]).cpu()
+
+
+def evaluate_batch(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Connectivity,
+                   schedules: Iterable[Schedule] = (Never(),), *, with_material: bool = False,
+                   one_step_schedule: Schedule = Never(), m_plus_10: bool = True, iou: bool = True,
+                   horizon: int = 10) -> dict[str, Tensor]:
+    """Per-trajectory metrics {name: float64 [B]} (module docstring) of `step_fn` on `batch`.
+    m_plus_10 is skipped when trajectories are too short (T <= horizon); iou needs 2D."""
+    true = split_trajectories(batch.positions, batch)
+    out: dict[str, list[float]] = {}
+
+    def add(name: str, per_traj: list[float]) -> None:
+        out[name] = torch.tensor(per_traj, dtype=torch.float64)
+
+    one_step = split_trajectories(one_step_predictions(step_fn, batch, one_step_schedule, connectivity, with_material), batch)
+    add("one_step_mse", [one_step_mse(p[:, 1:], t[:, 1:])[0] for p, t in zip(one_step, true)])
+    for schedule in schedules:
+        key = schedule_key(schedule)
+        pred = split_trajectories(rollout(step_fn, batch, schedule, connectivity, with_material)[0], batch)
+        add(f"rollout_mse_{key}", [rollout_mse(p, t)[0] for p, t in zip(pred, true)])
+        if iou and batch.positions.shape[-1] == 2:
+            add(f"rollout_iou_{key}", [batch_iou(p, t, trajectory_cells(batch, b))[0, 1:].mean().item()
+                                       for b, (p, t) in enumerate(zip(pred, true))])
+    if m_plus_10 and batch.num_steps > horizon:
+        preds = m_plus_10_rollouts(step_fn, batch, connectivity, horizon, m_plus_10_starts(batch.num_steps, horizon),
+                                   with_material)
+        per_m = {m: split_trajectories(p, batch) for m, p in preds.items()}
+        add("m10_mse", [m_plus_10_mse({m: p[b] for m, p in per_m.items()}, t, horizon=horizon)[0]
+                        for b, t in enumerate(true)])
+    return out
+
+
+class MetricTable:
+    """Per-trajectory metric values accumulated over batches."""
+
+    def __init__(self):
+        self.values: dict[str, list[Tensor]] = {}
+
+    def add(self, metrics: dict[str, Tensor]) -> None:
+        for name, per_traj in metrics.items():
+            self.values.setdefault(name, []).append(per_traj.detach().cpu().to(torch.float64))
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        """{name: {"mean", "std" (over trajectories, population), "count"}}."""
+        out = {}
+        for name, parts in self.values.items():
+            v = torch.cat(parts)
+            out[name] = {"mean": v.mean().item(), "std": v.std(unbiased=False).item(), "count": len(v)}
+        return out
+
+    def means(self) -> dict[str, float]:
+        return {name: s["mean"] for name, s in self.summary().items()}
+
+
+def markdown_table(results: dict[str, dict[str, float]], title: str | None = None) -> str:
+    """Metric summaries {name: {"mean", "std", "count"}} as a markdown table (mean +- std over trajectories)."""
+    lines = [f"### {title}", ""] if title else []
+    lines += ["| metric | mean | std over trajectories | trajectories |", "|---|---|---|---|"]
+    for name, s in results.items():
+        std = "" if math.isnan(s["std"]) else f"{s['std']:.3e}"
+        lines.append(f"| {name} | {s['mean']:.4e} | {std} | {s['count']} |")
+    return "\n".join(lines) + "\n"

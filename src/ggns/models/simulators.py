@@ -1,0 +1,287 @@
+"""The four learned simulators as LightningModules sharing one base, one core and one rollout engine.
+
+    GGNS      the paper's model: one-hot node/edge types into shared encoders, one homogeneous
+              processor, trained by imputation (a sample has its point cloud with prob. p)
+    GGNSLSTM  GGNS with an LSTM cell on the mesh latents between processor and decoder, trained
+              on windows of `window` steps with backpropagation through time
+    MGN       MeshGraphNets: per-type encoders, one edge MLP per edge type, world edges, no points
+    MGNM      MGN(M): MGN with the Poisson's ratio as a mesh node feature
+
+A class fixes the model family (class attributes); its init args tune it. The model predicts
+the displacement x_{t+1} - x_t of every mesh node from the graph of state t (`TrajectoryBatch.
+graph`); fixed nodes take their known positions and are left out of the loss. Training adds
+Gaussian noise (`noise_std`) to the free input positions and corrects the target, so the model
+learns to return to the true next state. Input features and targets are standardized with
+statistics from one pass over the training data at the start of `fit` (`statistics_batches`
+limits it), which are saved with the checkpoint.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import warnings
+from pathlib import Path
+from typing import Any
+
+import pytorch_lightning as pl
+import torch
+from torch import Tensor, nn
+from torch_geometric.data import HeteroData
+
+from ..evaluation.evaluate import MetricTable, evaluate_batch, markdown_table
+from ..evaluation.rollout import rollout
+from ..evaluation.schedules import Schedule, parse_schedule
+from ..graphs.connectivity import Connectivity, load_connectivity
+from ..graphs.state import TrajectoryBatch
+from ..graphs.types import MESH_EDGE
+from .core import EncodeProcessDecode, graph_features
+from .normalization import Normalizer
+
+LstmState = tuple[Tensor, Tensor] | None
+
+
+class GraphSimulator(pl.LightningModule):
+    """Shared base (module docstring). Args:
+        connectivity: graph preset (conf/graphs/<name>.yaml) or YAML path.
+        dim: spatial dimension of the scene (2 or 3).
+        latent, blocks, mlp_layers: core size (paper: 128, 5, 1).
+        point_probability: chance that a training sample (a window for the LSTM) gets its point clouds.
+        noise_std: std of the training noise on free input mesh positions (task-space units).
+        lr: Adam learning rate (paper: 5e-4).
+        window: transitions per training sample (backpropagation through time for the LSTM).
+        eval_schedules: point-cloud schedules of the test rollouts ("every:K", "first:M", "never").
+        test_m_plus_10, test_iou: also compute the m+10-step error and (2D) the IoU in `test`.
+        statistics_batches: training batches in the normalization pass (None: the whole split).
+        std_floor: lower bound of every normalization std.
+    """
+
+    edge_partition = False  # one edge MLP per edge type (MGN) or one shared processor (GGNS)
+    type_encoding = "one_hot"  # "one_hot" (GGNS) or "per_type" encoders (MGN)
+    recurrent = False  # LSTM between processor and decoder
+    with_material = False  # Poisson's ratio as a mesh node feature (MGN(M))
+
+    def __init__(self, connectivity: str = "plate_full_graph", dim: int = 2, latent: int = 128, blocks: int = 5,
+                 mlp_layers: int = 1, point_probability: float = 0.5, noise_std: float = 0.01, lr: float = 5e-4,
+                 window: int = 1, eval_schedules: tuple[str, ...] = ("every:1", "every:2", "every:5", "every:10", "never"),
+                 test_m_plus_10: bool = True, test_iou: bool = True, statistics_batches: int | None = None,
+                 std_floor: float = 1e-8):
+        super().__init__()
+        self.save_hyperparameters()
+        if dim not in (2, 3):
+            raise ValueError(f"dim must be 2 or 3, got {dim}")
+        if not 0.0 <= point_probability <= 1.0:
+            raise ValueError(f"point_probability must lie in [0, 1], got {point_probability}")
+        if noise_std < 0 or lr <= 0 or window < 1:
+            raise ValueError(f"need noise_std >= 0, lr > 0 and window >= 1; got {noise_std}, {lr}, {window}")
+        self.connectivity: Connectivity = load_connectivity(connectivity)
+        if point_probability > 0 and not self.connectivity.uses_points:
+            raise ValueError(f"point_probability={point_probability} but connectivity {connectivity!r} has no point "
+                             f"edges; set point_probability=0 or use a connectivity with point radii")
+        self.schedules: list[Schedule] = [parse_schedule(s) for s in eval_schedules]
+        self.window = window
+        self.core = EncodeProcessDecode(*self.input_dims(self.connectivity, dim, self.with_material), out_dim=dim,
+                                        latent=latent, blocks=blocks, mlp_layers=mlp_layers,
+                                        edge_partition=self.edge_partition, type_encoding=self.type_encoding,
+                                        std_floor=std_floor)
+        self.target_normalizer = Normalizer(dim, std_floor)
+        self.lstm = nn.LSTMCell(latent, latent) if self.recurrent else None
+        self._test_table: MetricTable | None = None
+
+    @staticmethod
+    def input_dims(connectivity: Connectivity, dim: int, with_material: bool) -> tuple[dict, dict]:
+        """Input width per node and edge type a model with this connectivity sees (see `graphs.build`)."""
+        node_dims = {"mesh": 2 if with_material else 1, "collider": dim}
+        if connectivity.uses_points:
+            node_dims["point"] = 0
+        edge_dims = {MESH_EDGE: 2 * (dim + 1)}
+        for edge_type, r in connectivity.radii().items():
+            if r > 0 and edge_type[0] in node_dims and edge_type[2] in node_dims:
+                edge_dims[edge_type] = dim + 1
+        return node_dims, edge_dims
+
+    @property
+    def uses_points(self) -> bool:
+        return self.connectivity.uses_points
+
+    # ---- prediction -------------------------------------------------------------------------
+    def predict_normalized(self, graph: HeteroData, state: LstmState = None) -> tuple[Tensor, LstmState]:
+        """Graph -> (normalized displacement [N_mesh, d], new LSTM state or None)."""
+        latents = self.core.encode_process(graph)
+        if self.lstm is not None:
+            if state is None:
+                state = (latents.new_zeros(latents.shape), latents.new_zeros(latents.shape))
+            state = self.lstm(latents, state)
+            latents = state[0]
+        return self.core.decode(latents), state
+
+    def step(self, graph: HeteroData, state: LstmState = None) -> tuple[Tensor, LstmState]:
+        """The rollout step function: graph of state t -> (displacement [N_mesh, d] in task units, state)."""
+        out, state = self.predict_normalized(graph, state)
+        return self.target_normalizer.inverse(out), state
+
+    def forward(self, graph: HeteroData) -> Tensor:
+        """Displacement of every mesh node [N_mesh, d] for a single step (no recurrent state)."""
+        return self.step(graph)[0]
+
+    # ---- training -------------------------------------------------------------------------
+    def training_graphs(self, batch: TrajectoryBatch, train: bool = True) -> list[tuple[HeteroData, Tensor]]:
+        """(graph, target displacement [sumN, d]) for each transition of a window batch. train: noise
+        and per-window imputation draws; otherwise no noise and point clouds whenever the model uses them."""
+        if train and self.uses_points:
+            use_points = torch.rand(batch.num_graphs, device=self.device) < self.hparams.point_probability
+        else:
+            use_points = self.uses_points
+        free = ~batch.fixed[:, None]
+        samples = []
+        for t in range(batch.num_steps - 1):
+            pos = batch.positions[t]
+            if train and self.hparams.noise_std > 0:
+                pos = pos + torch.randn_like(pos) * self.hparams.noise_std * free
+            graph = batch.graph(t, pos, use_points, self.connectivity, self.with_material)
+            samples.append((graph, batch.positions[t + 1] - pos))
+        return samples
+
+    def window_loss(self, batch: TrajectoryBatch, train: bool = True) -> Tensor:
+        """Mean over the window's transitions of the normalized-target MSE on free mesh nodes."""
+        free = ~batch.fixed
+        if not free.any():
+            raise ValueError("batch has no free mesh nodes: nothing to train on")
+        state, losses = None, []
+        for graph, target in self.training_graphs(batch, train):
+            out, state = self.predict_normalized(graph, state)
+            losses.append((out[free] - self.target_normalizer(target[free])).square().mean())
+        loss = torch.stack(losses).mean()
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"non-finite training loss {loss.item()} at global step {self.global_step}")
+        return loss
+
+    def training_step(self, batch: TrajectoryBatch, batch_idx: int) -> Tensor:
+        loss = self.window_loss(batch, train=True)
+        self.log("train/loss", loss, batch_size=batch.num_graphs, prog_bar=True)
+        return loss
+
+    def validation_step(self, batch: TrajectoryBatch, batch_idx: int) -> None:
+        self.log("val/loss", self.window_loss(batch, train=False), batch_size=batch.num_graphs, prog_bar=True)
+
+    def configure_optimizers(self):
+        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+
+    @torch.no_grad()
+    def fit_normalizers(self, batches) -> int:
+        """Statistics of inputs and targets over `batches` (training-time sampling), then freeze.
+        Returns the number of samples seen."""
+        free = ~torch.zeros(0, dtype=torch.bool)
+        count = 0
+        for i, batch in enumerate(batches):
+            if self.hparams.statistics_batches is not None and i >= self.hparams.statistics_batches:
+                break
+            batch = batch.to(self.device)
+            free = ~batch.fixed
+            for graph, target in self.training_graphs(batch, train=True):
+                self.core.input_normalizer.update(graph_features(graph))
+                self.target_normalizer.update(target[free])
+                count += batch.num_graphs
+        if count == 0:
+            raise ValueError("no training samples for the normalization statistics")
+        self.core.input_normalizer.freeze()
+        self.target_normalizer.freeze()
+        return count
+
+    def on_fit_start(self) -> None:
+        if self.target_normalizer.frozen:  # resumed or fine-tuned: statistics come from the checkpoint
+            return
+        datamodule = self.trainer.datamodule
+        if datamodule is None:
+            raise RuntimeError("fit needs a datamodule (SimulationDataModule) for the normalization pass")
+        dim = datamodule.dim
+        if dim != self.hparams.dim:
+            raise ValueError(f"model dim={self.hparams.dim} but the dataset {datamodule.data_dir} is {dim}D")
+        self.fit_normalizers(datamodule.train_dataloader())
+
+    # ---- evaluation -------------------------------------------------------------------------
+    def evaluate(self, batch: TrajectoryBatch, schedules=None, **kwargs) -> dict[str, Tensor]:
+        """Per-trajectory paper metrics of this model on `batch` (`evaluation.evaluate_batch`)."""
+        schedules = self.schedules if schedules is None else schedules
+        one_step = parse_schedule("every:1" if self.uses_points else "never")
+        with torch.no_grad():
+            return evaluate_batch(self.step, batch, self.connectivity, schedules, with_material=self.with_material,
+                                  one_step_schedule=one_step, **kwargs)
+
+    def rollout(self, batch: TrajectoryBatch, schedule: Schedule | str) -> Tensor:
+        """Positions [T, sumN, d] of a rollout of `batch` from S_0 under `schedule`."""
+        schedule = parse_schedule(schedule) if isinstance(schedule, str) else schedule
+        with torch.no_grad():
+            return rollout(self.step, batch, schedule, self.connectivity, self.with_material)[0]
+
+    def on_test_epoch_start(self) -> None:
+        self._test_table = MetricTable()
+
+    def test_step(self, batch: TrajectoryBatch, batch_idx: int) -> None:
+        self._test_table.add(self.evaluate(batch, m_plus_10=self.hparams.test_m_plus_10, iou=self.hparams.test_iou))
+
+    def on_test_epoch_end(self) -> None:
+        summary = self._test_table.summary()
+        for name, s in summary.items():
+            self.log(f"test/{name}", s["mean"])
+        table = markdown_table(summary, f"{type(self).__name__} test metrics")
+        print("\n" + table)
+        log_dir = self.trainer.log_dir
+        if log_dir is not None and self.trainer.is_global_zero:
+            Path(log_dir).mkdir(parents=True, exist_ok=True)
+            (Path(log_dir) / "test_metrics.md").write_text(table)
+            (Path(log_dir) / "test_metrics.json").write_text(json.dumps(summary, indent=2))
+        self.test_results = summary
+
+    def predict_step(self, batch: TrajectoryBatch, batch_idx: int) -> dict[str, Any]:
+        """Rollouts of the first eval schedule: {"schedule", "positions" [T, sumN, d], "node_offsets"}."""
+        return {"schedule": str(self.schedules[0]), "positions": self.rollout(batch, self.schedules[0]).cpu(),
+                "node_offsets": batch.node_offsets}
+
+    # ---- checkpoints -------------------------------------------------------------------------
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["connectivity"] = dataclasses.asdict(self.connectivity)
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        saved = checkpoint.get("connectivity")
+        if saved is not None and saved != dataclasses.asdict(self.connectivity):
+            warnings.warn(f"connectivity preset {self.hparams.connectivity!r} changed since the checkpoint was "
+                          f"written; using the checkpoint's radii {saved}", stacklevel=2)
+            self.connectivity = Connectivity.from_dict(saved)
+
+
+class GGNS(GraphSimulator):
+    """Grounding Graph Network Simulator (one-hot types, shared processor, imputation training)."""
+
+    def __init__(self, connectivity: str = "plate_full_graph", point_probability: float = 0.5, **kwargs):
+        super().__init__(connectivity=connectivity, point_probability=point_probability, **kwargs)
+
+
+class GGNSLSTM(GraphSimulator):
+    """GGNS with an LSTM on the mesh latents, trained on windows of `window` steps (paper: 5)."""
+
+    recurrent = True
+
+    def __init__(self, connectivity: str = "plate_full_graph", point_probability: float = 0.5, window: int = 5,
+                 **kwargs):
+        super().__init__(connectivity=connectivity, point_probability=point_probability, window=window, **kwargs)
+
+
+class MGN(GraphSimulator):
+    """MeshGraphNets baseline: per-type encoders and edge MLPs, world edges, no point clouds."""
+
+    edge_partition = True
+    type_encoding = "per_type"
+
+    def __init__(self, connectivity: str = "plate_mgn", point_probability: float = 0.0,
+                 eval_schedules: tuple[str, ...] = ("never",), **kwargs):
+        super().__init__(connectivity=connectivity, point_probability=point_probability,
+                         eval_schedules=eval_schedules, **kwargs)
+
+
+class MGNM(MGN):
+    """MGN(M): MGN given the material (Poisson's ratio as a mesh node feature)."""
+
+    with_material = True
+
+
+MODELS = {"ggns": GGNS, "ggns_lstm": GGNSLSTM, "mgn": MGN, "mgn_m": MGNM}

@@ -19,3 +19,22 @@ def box_mesh(dim: int, n: int = 5, size=(1.0, 1.0, 1.0)) -> tuple[np.ndarray, np
 def tiny_config(tmp_path) -> dict:
     """The plate_tiny preset writing into a temporary directory."""
     return load_config("plate_tiny", [f"output={tmp_path / 'data'}"])
+
+
+@pytest.fixture(scope="session")
+def tiny_data_dir(tmp_path_factory):
+    """All splits of the plate_tiny preset (3 / 2 / 2 trajectories of T = 8 states), generated
+    once per session by the real simulator into a temporary directory; returns that directory.
+    Generating in-process with one worker calls torch.set_num_threads(1) (the worker initializer),
+    so the caller's thread count is restored afterwards."""
+    import torch
+
+    from ggns.data.generate import generate
+
+    threads = torch.get_num_threads()
+    out = tmp_path_factory.mktemp("plate_tiny")
+    try:
+        generate(load_config("plate_tiny", [f"output={out}"]), progress=False)
+    finally:
+        torch.set_num_threads(threads)
+    return out

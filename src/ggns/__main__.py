@@ -3,7 +3,8 @@
     fit, validate, test, predict
               the Lightning CLI for the simulators (`python -m ggns fit --help`; see ggns.cli)
     generate  simulate and observe dataset splits into HDF5 files
-    bench     benchmarks (`bench sim`: simulator and dataset generation speed)
+    bench     benchmarks (`bench sim`: simulator and dataset generation speed;
+              `bench models`: training and rollout throughput of the learned simulators)
     demo      the README's main job on a small embedded default
 """
 from __future__ import annotations
@@ -30,15 +31,21 @@ def _generate(args: argparse.Namespace) -> None:
 
 
 def _bench(args: argparse.Namespace) -> None:
-    from .bench import bench_sim
+    from .bench import bench_models, bench_sim
 
+    if args.what == "models":
+        models = tuple(m.strip() for m in args.models.split(",") if m.strip())
+        bench_models(args.dataset, models, train_batches=args.train_batches, rollout_steps=args.rollout_steps,
+                     device=args.device, output=args.output, batch_size=args.batch_size,
+                     rollout_trajectories=args.rollout_trajectories, repeats=args.repeats)
+        return
     bench_sim(args.config, trajectories=args.trajectories, generate_splits=args.generate)
 
 
 def _demo(args: argparse.Namespace) -> None:
     from .demo import run_demo
 
-    run_demo(args.output)
+    run_demo(args.output, preset=args.preset, minutes=args.minutes, models=tuple(args.models.split(",")))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -63,14 +70,26 @@ def main(argv: list[str] | None = None) -> None:
     gen.set_defaults(run=_generate)
 
     bench = sub.add_parser("bench", help="benchmarks")
-    bench.add_argument("what", choices=["sim"])
-    bench.add_argument("--config", default="plate")
-    bench.add_argument("--trajectories", type=int, default=9, help="trajectories timed one by one")
-    bench.add_argument("--generate", action="store_true", help="also time generating all splits of the config with its workers")
+    bench.add_argument("what", choices=["sim", "models"], help="sim: simulator and generation; models: learned simulators")
+    bench.add_argument("--config", default="plate", help="sim: data preset")
+    bench.add_argument("--trajectories", type=int, default=9, help="sim: trajectories timed one by one")
+    bench.add_argument("--generate", action="store_true", help="sim: also time generating all splits of the config with its workers")
+    bench.add_argument("--dataset", default="plate_small", help="models: data preset (train and test splits; generated if missing)")
+    bench.add_argument("--models", default="ggns,ggns_lstm,mgn,mgn_m", help="models: comma-separated (default: all four)")
+    bench.add_argument("--train-batches", type=int, default=10, help="models: timed training iterations per model")
+    bench.add_argument("--rollout-steps", type=int, help="models: steps per timed rollout (default: whole test trajectories)")
+    bench.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="models: device")
+    bench.add_argument("--output", help="models: write the measurements to this CSV")
+    bench.add_argument("--batch-size", type=int, default=32, help="models: training windows per batch (paper: 32)")
+    bench.add_argument("--rollout-trajectories", type=int, default=32, help="models: trajectories in the batched rollout")
+    bench.add_argument("--repeats", type=int, default=3, help="models: timed rollouts per measurement (median)")
     bench.set_defaults(run=_bench)
 
     demo = sub.add_parser("demo", help="the README's main job on a small default")
     demo.add_argument("--output", default="lightning_logs/demo")
+    demo.add_argument("--preset", default="plate_small", help="data preset (conf/data/)")
+    demo.add_argument("--minutes", type=float, default=5.0, help="wall-clock training budget per model")
+    demo.add_argument("--models", default="ggns,mgn", help="comma-separated configs from conf/plate/")
     demo.set_defaults(run=_demo)
 
     args = parser.parse_args(argv)

@@ -78,11 +78,11 @@ def generate(config: dict, splits: list[str] | None = None, *, overwrite: bool =
         raise FileExistsError(f"{existing} already exist; pass --overwrite (overwrite=True) to replace them")
     workers = max(1, int(config["workers"]))
     dim = int(config["scene"].get("dim", 2))
-    pool = None
+    pool, threads = None, torch.get_num_threads()
     if workers > 1:
         pool = mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(config,))
     else:
-        _init_worker(config)
+        _init_worker(config)  # in this process: its thread setting is restored below
     try:
         for split, path in zip(chosen, paths):
             jobs = _jobs(config, split, int(sizes[split]))
@@ -95,4 +95,5 @@ def generate(config: dict, splits: list[str] | None = None, *, overwrite: bool =
     finally:
         if pool is not None:
             pool.terminate()
+        torch.set_num_threads(threads)
     return paths

@@ -36,7 +36,7 @@ from torch import Tensor, nn
 from torch_geometric.data import HeteroData
 
 from ggns.graphs.types import EDGE_TYPES, NODE_TYPES
-from ggns.models.normalization import NodeOrEdgeType, NormalizerDict, type_key
+from ggns.models.normalization import DEFAULT_STD_FLOOR, NodeOrEdgeType, NormalizerDict, type_key
 
 EdgeType = tuple[str, str, str]
 TYPE_ENCODINGS = ("per_type", "one_hot")
@@ -181,7 +181,7 @@ class EncodeProcessDecode(nn.Module):
 
     def __init__(self, node_dims: Mapping[str, int], edge_dims: Mapping[EdgeType, int], out_dim: int,
                  latent: int = 128, blocks: int = 5, mlp_layers: int = 1, edge_partition: bool = False,
-                 std_floor: float = 1e-8, type_encoding: str = "per_type"):
+                 std_floor: float = DEFAULT_STD_FLOOR, type_encoding: str = "per_type"):
         super().__init__()
         if type_encoding not in TYPE_ENCODINGS:
             raise ValueError(f"type_encoding must be one of {TYPE_ENCODINGS}, got {type_encoding!r}")

@@ -14,6 +14,11 @@ from torch import Tensor, nn
 
 NodeOrEdgeType = Union[str, tuple[str, str, str]]
 
+# Well above the float32 resolution of task-space quantities (~1e-7 in [-1, 1]): a feature that
+# is constant in the training data (the plate's collider velocity) is then standardized to ~0
+# instead of turning float32 rounding noise into O(1) inputs.
+DEFAULT_STD_FLOOR = 1e-5
+
 
 def type_key(t: NodeOrEdgeType) -> str:
     """Module-dict key of a node type ("mesh") or edge type ("collider__near__mesh")."""
@@ -29,7 +34,7 @@ class Normalizer(nn.Module):
     normalizer is the identity (mean 0, std 1), e.g. for a type absent from training data.
     """
 
-    def __init__(self, size: int, std_floor: float = 1e-8):
+    def __init__(self, size: int, std_floor: float = DEFAULT_STD_FLOOR):
         super().__init__()
         self.size = size
         self.std_floor = std_floor
@@ -89,7 +94,7 @@ class Normalizer(nn.Module):
 class NormalizerDict(nn.Module):
     """One `Normalizer` per node or edge type, used with dicts {type: features [M, F]}."""
 
-    def __init__(self, sizes: Mapping[NodeOrEdgeType, int], std_floor: float = 1e-8):
+    def __init__(self, sizes: Mapping[NodeOrEdgeType, int], std_floor: float = DEFAULT_STD_FLOOR):
         super().__init__()
         self.normalizers = nn.ModuleDict({type_key(t): Normalizer(f, std_floor) for t, f in sizes.items()})
 

@@ -35,7 +35,7 @@ from ..graphs.connectivity import Connectivity, load_connectivity
 from ..graphs.state import TrajectoryBatch
 from ..graphs.types import MESH_EDGE
 from .core import EncodeProcessDecode, graph_features
-from .normalization import Normalizer
+from .normalization import DEFAULT_STD_FLOOR, Normalizer
 
 LstmState = tuple[Tensor, Tensor] | None
 
@@ -52,7 +52,7 @@ class GraphSimulator(pl.LightningModule):
         eval_schedules: point-cloud schedules of the test rollouts ("every:K", "first:M", "never").
         test_m_plus_10, test_iou: also compute the m+10-step error and (2D) the IoU in `test`.
         statistics_batches: training batches in the normalization pass (None: the whole split).
-        std_floor: lower bound of every normalization std.
+        std_floor: lower bound of every normalization std (see `normalization.DEFAULT_STD_FLOOR`).
     """
 
     edge_partition = False  # one edge MLP per edge type (MGN) or one shared processor (GGNS)
@@ -64,7 +64,7 @@ class GraphSimulator(pl.LightningModule):
                  mlp_layers: int = 1, point_probability: float = 0.5, noise_std: float = 0.01, lr: float = 5e-4,
                  window: int = 1, eval_schedules: tuple[str, ...] = ("every:1", "every:2", "every:5", "every:10", "never"),
                  test_m_plus_10: bool = True, test_iou: bool = True, statistics_batches: int | None = None,
-                 std_floor: float = 1e-8):
+                 std_floor: float = DEFAULT_STD_FLOOR):
         super().__init__()
         self.save_hyperparameters()
         if dim not in (2, 3):
@@ -77,6 +77,10 @@ class GraphSimulator(pl.LightningModule):
         if point_probability > 0 and not self.connectivity.uses_points:
             raise ValueError(f"point_probability={point_probability} but connectivity {connectivity!r} has no point "
                              f"edges; set point_probability=0 or use a connectivity with point radii")
+        if point_probability == 0 and self.connectivity.uses_points:
+            raise ValueError(f"point_probability=0 but connectivity {connectivity!r} has point edges: the model would "
+                             f"never see a point cloud in training, yet evaluation feeds them; use p > 0 or a "
+                             f"connectivity without point radii")
         self.schedules: list[Schedule] = [parse_schedule(s) for s in eval_schedules]
         self.window = window
         self.core = EncodeProcessDecode(*self.input_dims(self.connectivity, dim, self.with_material), out_dim=dim,

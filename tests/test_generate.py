@@ -10,10 +10,8 @@ import numpy as np
 import pytest
 import shapely
 
-from ggns.data.generate import generate, split_path
+from ggns.data.generate import generate, regenerate, split_path
 from ggns.data.schema import DatasetError, SplitReader, read_trajectories
-from ggns.scenes import plate
-from ggns.sensors.camera import DepthSensor, SensorConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -44,8 +42,7 @@ def test_a_trajectory_regenerates_from_its_stored_seed(tiny_dataset):
     with SplitReader(split_path(tiny_dataset["output"], "val")) as reader:
         stored = reader[1]
         config = reader.generator_config
-    sensor = DepthSensor(SensorConfig.from_dict(config["sensor"]))
-    _assert_same(plate.make_trajectory(config, 1, stored.seed, sensor), stored)
+    _assert_same(regenerate(config, 1, stored.seed), stored)
 
 
 def test_splits_are_balanced_and_described(tiny_dataset):

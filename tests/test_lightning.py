@@ -534,3 +534,10 @@ def test_cli_mgn_fit_and_test(cli_data, tmp_path):
     summary = json.loads((tmp_path / "mgn" / "test" / "test_metrics.json").read_text())
     assert sorted(summary) == ["m10_mse", "one_step_mse", "rollout_iou_never", "rollout_mse_never"]
     assert all(math.isfinite(s["mean"]) and s["count"] == 2 for s in summary.values())
+    # predict: the RolloutWriter of the config saves the rollouts of the test trajectories
+    run_cli(["predict", *cli_args("mgn", cli_data, tmp_path, "predict", "--ckpt_path", str(best))])
+    predictions = torch.load(tmp_path / "mgn" / "predict" / "predictions.pt")
+    (first,) = predictions  # the 2 test trajectories form one batch
+    assert first["schedule"] == "never" and len(first["node_offsets"]) == 3
+    positions = first["positions"]
+    assert positions.shape[1:] == (first["node_offsets"][-1], 2) and torch.isfinite(positions).all()

@@ -45,7 +45,8 @@ def _bench(args: argparse.Namespace) -> None:
 def _demo(args: argparse.Namespace) -> None:
     from .demo import run_demo
 
-    run_demo(args.output, preset=args.preset, minutes=args.minutes, models=tuple(args.models.split(",")))
+    run_demo(args.output, preset=args.preset, minutes=args.minutes, models=tuple(args.models.split(",")),
+             test_trajectories=args.test_trajectories)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -88,7 +89,8 @@ def main(argv: list[str] | None = None) -> None:
     demo = sub.add_parser("demo", help="the README's main job on a small default")
     demo.add_argument("--output", default="lightning_logs/demo")
     demo.add_argument("--preset", default="plate_small", help="data preset (conf/data/)")
-    demo.add_argument("--minutes", type=float, default=5.0, help="wall-clock training budget per model")
+    demo.add_argument("--minutes", type=float, default=4.0, help="wall-clock training budget per model")
+    demo.add_argument("--test-trajectories", type=int, default=9, help="test trajectories evaluated per model")
     demo.add_argument("--models", default="ggns,mgn", help="comma-separated configs from conf/plate/")
     demo.set_defaults(run=_demo)
 

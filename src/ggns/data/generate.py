@@ -48,6 +48,18 @@ def _make(job: tuple[int, int]):
         raise RuntimeError(f"trajectory with seed {seed} (combination {combination}): {error}") from error
 
 
+def regenerate(config: dict, combination: int, seed: int):
+    """One trajectory exactly as `generate` made it (e.g. from a file's generator_config and a stored
+    seed). Generation runs torch single-threaded, and float reductions depend on the thread
+    count, so this pins torch to 1 thread while it simulates and restores the setting after."""
+    threads = torch.get_num_threads()
+    try:
+        _init_worker(config)
+        return _make((combination, seed))
+    finally:
+        torch.set_num_threads(threads)
+
+
 def split_path(output: str | Path, split: str) -> Path:
     return Path(output) / f"{split}.h5"
 

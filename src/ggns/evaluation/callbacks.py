@@ -2,12 +2,16 @@
 checkpoint selection) and rollout pictures in TensorBoard. Both run at the end of every
 validation epoch (set how often with the Trainer's `check_val_every_n_epoch`), never during the
 sanity check, and roll out through the module's `evaluate` / `rollout`, i.e. the one engine.
+`RolloutWriter` saves the rollouts of `predict`.
 """
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import pytorch_lightning as pl
+import torch
+from pytorch_lightning.callbacks import BasePredictionWriter
 from pytorch_lightning.loggers import TensorBoardLogger
 
 from ..graphs.state import TrajectoryBatch
@@ -94,3 +98,18 @@ class RolloutPictures(pl.Callback):
         logger.experiment.add_image(f"rollout/{self.split}_{self.trajectory}", figure_to_image(fig),
                                     trainer.global_step, dataformats="HWC")
 
+
+
+class RolloutWriter(BasePredictionWriter):
+    """Saves what `predict` returns (per batch: the schedule, rollout positions [T, sumN, d] and
+    the node offsets of its trajectories) to `<log dir>/predictions.pt` with torch.save."""
+
+    def __init__(self, filename: str = "predictions.pt"):
+        super().__init__(write_interval="epoch")
+        self.filename = filename
+
+    def write_on_epoch_end(self, trainer: pl.Trainer, pl_module, predictions, batch_indices) -> None:
+        directory = Path(trainer.log_dir or ".")
+        directory.mkdir(parents=True, exist_ok=True)
+        torch.save(predictions, directory / self.filename)
+        print(f"wrote {directory / self.filename}")

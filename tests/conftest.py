@@ -24,17 +24,9 @@ def tiny_config(tmp_path) -> dict:
 @pytest.fixture(scope="session")
 def tiny_data_dir(tmp_path_factory):
     """All splits of the plate_tiny preset (3 / 2 / 2 trajectories of T = 8 states), generated
-    once per session by the real simulator into a temporary directory; returns that directory.
-    Generating in-process with one worker calls torch.set_num_threads(1) (the worker initializer),
-    so the caller's thread count is restored afterwards."""
-    import torch
-
+    once per session by the real simulator into a temporary directory; returns that directory."""
     from ggns.data.generate import generate
 
-    threads = torch.get_num_threads()
     out = tmp_path_factory.mktemp("plate_tiny")
-    try:
-        generate(load_config("plate_tiny", [f"output={out}"]), progress=False)
-    finally:
-        torch.set_num_threads(threads)
+    generate(load_config("plate_tiny", [f"output={out}"]), progress=False)
     return out

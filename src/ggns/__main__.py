@@ -3,6 +3,7 @@
     fit, validate, test, predict
               the Lightning CLI for the simulators (`python -m ggns fit --help`; see ggns.cli)
     generate  simulate and observe dataset splits into HDF5 files
+    sweep     multi-seed sweeps of model configs
     bench     benchmarks (`bench sim`: simulator and dataset generation speed;
               `bench models`: training and rollout throughput of the learned simulators)
     demo      the README's main job on a small embedded default
@@ -49,6 +50,22 @@ def _demo(args: argparse.Namespace) -> None:
              test_trajectories=args.test_trajectories)
 
 
+def _sweep(args: argparse.Namespace) -> None:
+    from .experiments.sweep import load_sweep, run_sweep, slurm_script, summarize
+
+    sweep = load_sweep(args.config, args.overrides)
+    if args.slurm:
+        from pathlib import Path
+
+        Path(args.slurm).write_text(slurm_script(sweep, args.config))
+        print(f"wrote {args.slurm} (submit with sbatch)")
+        return
+    if not args.aggregate_only:
+        run_sweep(sweep, args.task)
+    if args.task is None:
+        summarize(sweep)
+
+
 def main(argv: list[str] | None = None) -> None:
     given = sys.argv[1:] if argv is None else list(argv)
     if given and given[0] in ("fit", "validate", "test", "predict"):
@@ -85,6 +102,14 @@ def main(argv: list[str] | None = None) -> None:
     bench.add_argument("--rollout-trajectories", type=int, default=32, help="models: trajectories in the batched rollout")
     bench.add_argument("--repeats", type=int, default=3, help="models: timed rollouts per measurement (median)")
     bench.set_defaults(run=_bench)
+
+    sweep = sub.add_parser("sweep", help="multi-seed sweep of model configs (fit + test per run, resumable)")
+    sweep.add_argument("--config", default="plate", help="sweep preset in conf/sweeps/ or a YAML path")
+    sweep.add_argument("--task", type=int, help="run only this run of the grid (a SLURM array task)")
+    sweep.add_argument("--slurm", help="write a SLURM job-array script for the sweep to this file instead of running")
+    sweep.add_argument("--aggregate-only", action="store_true", help="only aggregate the finished runs (e.g. after a SLURM array)")
+    sweep.add_argument("overrides", nargs="*", help="sweep overrides as key=value, e.g. seeds=[0,1] parallel=2")
+    sweep.set_defaults(run=_sweep)
 
     demo = sub.add_parser("demo", help="the README's main job on a small default")
     demo.add_argument("--output", default="lightning_logs/demo")

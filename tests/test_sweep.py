@@ -1,0 +1,73 @@
+"""Multi-seed sweeps end to end on tiny generated data (real subprocess runs of the Lightning CLI),
+resume after a run is deleted, and the SLURM job-array script."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+import yaml
+
+from ggns.config import CONF_DIR
+from ggns.experiments.sweep import load_sweep, run_sweep, runs_of, slurm_script, summarize
+
+
+def write_sweep(tmp_path, data_dir, seeds=(0, 1)) -> str:
+    tiny = ["--data.dataset", "plate_tiny", "--data.data_dir", str(data_dir), "--data.generate_missing", "false",
+            "--data.batch_size", "8", "--model.init_args.latent", "16", "--model.init_args.blocks", "2",
+            "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2", "--trainer.limit_val_batches", "1",
+            "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
+    sweep = {"output": str(tmp_path / "sweep"), "seeds": list(seeds), "parallel": 2, "args": tiny,
+             "models": {"mgn": {"config": str(CONF_DIR / "plate" / "mgn.yaml")}}}
+    path = tmp_path / "sweep.yaml"
+    path.write_text(yaml.safe_dump(sweep))
+    return str(path)
+
+
+def test_two_seed_sweep_runs_skips_and_resumes(tiny_data_dir, tmp_path):
+    sweep = load_sweep(write_sweep(tmp_path, tiny_data_dir))
+    runs = runs_of(sweep)
+    assert [(r.model, r.seed) for r in runs] == [("mgn", 0), ("mgn", 1)]
+    messages = []
+    run_sweep(sweep, log=messages.append)
+    metrics = {r.seed: json.loads(r.metrics_path.read_text()) for r in runs}
+    for m in metrics.values():
+        assert "rollout_mse_never" in m and m["rollout_mse_never"]["count"] == 2
+    assert metrics[0]["rollout_mse_never"]["mean"] != metrics[1]["rollout_mse_never"]["mean"]  # seeds differ
+    stamp = runs[0].metrics_path.stat().st_mtime_ns
+
+    shutil.rmtree(runs[1].fit_dir)
+    shutil.rmtree(runs[1].test_dir)
+    messages.clear()
+    run_sweep(sweep, log=messages.append)
+    assert any("skip mgn seed 0" in m for m in messages)
+    assert "fit mgn seed 1" in messages and "fit mgn seed 0" not in messages
+    assert runs[0].metrics_path.stat().st_mtime_ns == stamp and runs[1].finished
+
+    summary = summarize(sweep, log=messages.append).read_text()
+    assert "2 of 2 runs finished" in summary and "| mgn |" in summary
+    csv_text = (runs[0].output / "summary.csv").read_text()
+    assert "mgn,rollout_mse_never," in csv_text
+
+
+def test_a_single_array_task_and_bad_sweeps(tiny_data_dir, tmp_path):
+    sweep = load_sweep(write_sweep(tmp_path, tiny_data_dir))
+    with pytest.raises(IndexError, match="task 2 outside"):
+        run_sweep(sweep, task=2)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({"output": "x", "seeds": [0, 0], "models": {"mgn": {"config": str(CONF_DIR / "plate" / "mgn.yaml")}}}))
+    with pytest.raises(ValueError, match="repeated seeds"):
+        load_sweep(bad)
+    bad.write_text(yaml.safe_dump({"output": "x", "seeds": [0], "models": {"mgn": {"config": "nope.yaml"}}}))
+    with pytest.raises(FileNotFoundError, match="nope.yaml"):
+        load_sweep(bad)
+
+
+def test_slurm_script_has_one_task_per_run(tmp_path):
+    sweep = load_sweep("plate", ["seeds=[0,1,2]"])
+    script = slurm_script(sweep, "conf/sweeps/plate.yaml", partition="gpu")
+    assert script.startswith("#!/bin/bash\n")
+    assert "#SBATCH --array=0-11" in script  # 4 models x 3 seeds
+    assert "#SBATCH --partition=gpu" in script and "#SBATCH --gres=gpu:1" in script
+    assert "#SBATCH --signal=SIGUSR1@90" in script
+    assert "python -m ggns sweep --config conf/sweeps/plate.yaml --task $SLURM_ARRAY_TASK_ID" in script

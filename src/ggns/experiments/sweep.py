@@ -28,6 +28,7 @@ from omegaconf import OmegaConf
 
 from ..config import resolve_preset
 from .aggregate import aggregate, load_run, normalized_benefit, to_csv, to_markdown
+from .figures import write_figures
 
 
 @dataclass(frozen=True)
@@ -176,6 +177,7 @@ def summarize(sweep: dict, log=print) -> Path:
                       "| benefit | " + " | ".join(f"{v:.3f}" for v in benefit.values()) + " |"]
         except ValueError as error:
             lines += ["", f"Normalized benefit not computed: {error}"]
+    lines += [""] + [f"![{figure.stem}]({figure.name})" for figure in write_figures(table, output)]
     path = output / "summary.md"
     path.write_text("\n".join(lines) + "\n")
     log(f"wrote {path} and {output / 'summary.csv'}")

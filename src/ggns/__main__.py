@@ -5,7 +5,8 @@
     generate  simulate and observe dataset splits into HDF5 files
     sweep     multi-seed sweeps of model configs
     bench     benchmarks (`bench sim`: simulator and dataset generation speed;
-              `bench models`: training and rollout throughput of the learned simulators)
+              `bench models`: training and rollout throughput of the learned simulators;
+              `bench tradeoff`: time per rollout step against rollout error, CSV + Pareto plot)
     demo      the README's main job on a small embedded default
 """
 from __future__ import annotations
@@ -34,13 +35,27 @@ def _generate(args: argparse.Namespace) -> None:
 def _bench(args: argparse.Namespace) -> None:
     from .bench import bench_models, bench_sim
 
+    if args.what == "tradeoff":
+        from .experiments.tradeoff import tradeoff
+
+        checkpoints = {}
+        for item in args.checkpoint or []:
+            name, sep, path = item.partition("=")
+            if not sep or not name or not path:
+                raise ValueError(f"--checkpoint takes name=path, got {item!r}")
+            checkpoints[name] = path
+        tradeoff(args.dataset, checkpoints, trajectories=args.trajectories or 4,
+                 coarsen=tuple(int(c) for c in args.coarsen.split(",") if c.strip()), output_dir=args.output_dir,
+                 schedules=tuple(s.strip() for s in args.schedules.split(",") if s.strip()),
+                 batch=args.rollout_trajectories, repeats=args.repeats, grid_nodes=args.grid_nodes)
+        return
     if args.what == "models":
         models = tuple(m.strip() for m in args.models.split(",") if m.strip())
         bench_models(args.dataset, models, train_batches=args.train_batches, rollout_steps=args.rollout_steps,
                      device=args.device, output=args.output, batch_size=args.batch_size,
                      rollout_trajectories=args.rollout_trajectories, repeats=args.repeats)
         return
-    bench_sim(args.config, trajectories=args.trajectories, generate_splits=args.generate)
+    bench_sim(args.config, trajectories=args.trajectories or 9, generate_splits=args.generate)
 
 
 def _demo(args: argparse.Namespace) -> None:
@@ -88,9 +103,11 @@ def main(argv: list[str] | None = None) -> None:
     gen.set_defaults(run=_generate)
 
     bench = sub.add_parser("bench", help="benchmarks")
-    bench.add_argument("what", choices=["sim", "models"], help="sim: simulator and generation; models: learned simulators")
+    bench.add_argument("what", choices=["sim", "models", "tradeoff"],
+                       help="sim: simulator and generation; models: learned simulators; tradeoff: speed vs error")
     bench.add_argument("--config", default="plate", help="sim: data preset")
-    bench.add_argument("--trajectories", type=int, default=9, help="sim: trajectories timed one by one")
+    bench.add_argument("--trajectories", type=int, help="sim: trajectories timed one by one (default 9); "
+                       "tradeoff: test trajectories scored (default 4)")
     bench.add_argument("--generate", action="store_true", help="sim: also time generating all splits of the config with its workers")
     bench.add_argument("--dataset", default="plate_small", help="models: data preset (train and test splits; generated if missing)")
     bench.add_argument("--models", default="ggns,ggns_lstm,mgn,mgn_m", help="models: comma-separated (default: all four)")
@@ -99,8 +116,13 @@ def main(argv: list[str] | None = None) -> None:
     bench.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="models: device")
     bench.add_argument("--output", help="models: write the measurements to this CSV")
     bench.add_argument("--batch-size", type=int, default=32, help="models: training windows per batch (paper: 32)")
-    bench.add_argument("--rollout-trajectories", type=int, default=32, help="models: trajectories in the batched rollout")
-    bench.add_argument("--repeats", type=int, default=3, help="models: timed rollouts per measurement (median)")
+    bench.add_argument("--rollout-trajectories", type=int, default=32, help="models, tradeoff: trajectories in the batched rollout")
+    bench.add_argument("--repeats", type=int, default=3, help="models, tradeoff: timed rollouts per measurement (median)")
+    bench.add_argument("--checkpoint", action="append", metavar="NAME=PATH", help="tradeoff: a model checkpoint (repeatable)")
+    bench.add_argument("--coarsen", default="1,2,5", help="tradeoff: simulator time-step coarsening factors")
+    bench.add_argument("--schedules", default="every:1,never", help="tradeoff: point-cloud schedules of the model rollouts")
+    bench.add_argument("--grid-nodes", type=int, help="tradeoff: simulator mesh nodes per side (default: the preset's)")
+    bench.add_argument("--output-dir", default="lightning_logs/tradeoff", help="tradeoff: where tradeoff.csv/.png go")
     bench.set_defaults(run=_bench)
 
     sweep = sub.add_parser("sweep", help="multi-seed sweep of model configs (fit + test per run, resumable)")

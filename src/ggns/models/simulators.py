@@ -244,6 +244,7 @@ class GraphSimulator(pl.LightningModule):
     # ---- checkpoints -------------------------------------------------------------------------
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["connectivity"] = dataclasses.asdict(self.connectivity)
+        checkpoint["simulator_class"] = type(self).__name__
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         saved = checkpoint.get("connectivity")
@@ -289,3 +290,14 @@ class MGNM(MGN):
 
 
 MODELS = {"ggns": GGNS, "ggns_lstm": GGNSLSTM, "mgn": MGN, "mgn_m": MGNM}
+
+
+def load_simulator(path: str | Path, map_location=None) -> GraphSimulator:
+    """Any of the four simulators from a Lightning checkpoint written by this library (the class
+    is stored under "simulator_class"), in eval mode."""
+    checkpoint = torch.load(path, map_location=map_location, weights_only=False)
+    name = checkpoint.get("simulator_class")
+    classes = {cls.__name__: cls for cls in MODELS.values()}
+    if name not in classes:
+        raise ValueError(f"{path}: not a ggns simulator checkpoint (simulator_class={name!r}; known: {sorted(classes)})")
+    return classes[name].load_from_checkpoint(path, map_location=map_location).eval()

@@ -1,0 +1,262 @@
+"""The speed/accuracy trade: time per rollout step against rollout error, for the ground-truth
+simulator at coarser time steps and for learned simulators (checkpoints), as a CSV and a Pareto
+plot (`python -m ggns bench tradeoff`). A first version.
+
+Simulator points (`simulator_points`): the plate preset records one state per `frame_dt` and
+integrates it with `scene.substeps` solver steps (plate: 1). The time resolution is coarsened by
+solving with fewer substeps per frame; since the preset's own 1 substep cannot be divided, the
+REFERENCE is made finer instead: it uses `reference_substeps` (default: the smallest multiple of
+the preset's substeps that every coarsening factor divides, e.g. 10 for factors 1, 2, 5 and 1
+substep), and factor c uses reference_substeps / c substeps. c = 1 is the reference itself
+(error 0); the factor c = reference_substeps / preset substeps reproduces the dataset's own
+generator, so its error is the dataset's time-discretization error. Trajectories are those of
+the preset's test split (same combination and seed as `generate`), simulated by the scene's
+`make_trajectory` with the sensor replaced by a no-op, on 1 torch thread (as a generation
+worker); the time is the whole call (scene set-up included, sensor excluded) divided by the
+T - 1 simulated frames, median over the trajectories. Mesh resolution: the plate scene exposes
+`scene.grid_nodes` (nodes per side); `grid_nodes` overrides it for the simulator (reference and
+coarse runs alike) and the node count is recorded. The learned models are evaluated on the stored
+dataset, i.e. at the preset's resolution.
+
+Model points (`model_points`): each checkpoint is loaded with `models.simulators.load_simulator`
+(the class is stored in the checkpoint). Rollouts of whole test trajectories per
+point-cloud schedule (schedules with point clouds only for models that use them): ms per step
+for 1 trajectory and for `batch` trajectories at once (test trajectories repeated if fewer), the
+median of `repeats` rollouts after a warm-up (`bench._bench_rollout`), on the CPU and, when
+present, CUDA; the rollout MSE (`metrics.rollout_mse`, all nodes, as in `evaluate_batch`) of the
+first `trajectories` test trajectories against the dataset.
+
+The plot's x axis is ms per trajectory-step (models: the batched time divided by the batch; the
+simulator runs one trajectory at a time), y the rollout MSE; both are logarithmic, so zero errors
+(the simulator reference) are drawn at the bottom edge. Note the two references: simulator
+errors are against the finer simulator, model errors against the dataset.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..models.simulators import load_simulator
+
+COLUMNS = ("kind", "name", "setting", "device", "nodes", "steps", "trajectories", "ms_per_step_1",
+           "batch", "ms_per_step_batched", "ms_per_trajectory_step", "rollout_mse", "reference", "pareto")
+
+
+class _NoSensor:
+    """Stands in for the depth sensor: an empty point cloud per state (the simulator alone is timed)."""
+
+    def __init__(self, dim: int = 2):
+        self.dim = dim
+
+    def observe(self, *args, **kwargs) -> np.ndarray:
+        return np.zeros((0, self.dim), dtype=np.float32)
+
+
+def reference_substeps_for(preset_substeps: int, coarsen) -> int:
+    """Smallest multiple of the preset's substeps that every coarsening factor divides."""
+    return math.lcm(int(preset_substeps), *(int(c) for c in coarsen))
+
+
+def simulator_points(config: dict, trajectories: int = 4, coarsen=(1, 2, 5), grid_nodes: int | None = None,
+                     reference_substeps: int | None = None, split: str = "test") -> list[dict]:
+    """One row per coarsening factor (module docstring): ms per simulated frame and rollout MSE
+    against the reference (substeps `reference_substeps`); the first `trajectories` of `split`."""
+    from ..data.generate import _jobs
+    from ..evaluation.metrics import rollout_mse
+    from ..scenes import SCENES
+
+    coarsen = sorted({int(c) for c in coarsen})
+    if not coarsen or coarsen[0] < 1 or trajectories < 1:
+        raise ValueError(f"need coarsening factors >= 1 and trajectories >= 1, got {coarsen}, {trajectories}")
+    scene = dict(config["scene"])
+    if grid_nodes is not None:
+        scene["grid_nodes"] = int(grid_nodes)
+    preset_substeps = int(config["scene"]["substeps"])
+    reference = reference_substeps or reference_substeps_for(preset_substeps, coarsen)
+    bad = [c for c in coarsen if reference % c]
+    if bad:
+        raise ValueError(f"reference_substeps={reference} is not divisible by the coarsening factors {bad}")
+    module = SCENES[scene["name"]]
+    base = {**config, "scene": scene}
+    module.check_config({**base, "scene": {**scene, "substeps": reference}})
+    jobs = _jobs(base, split, trajectories)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    runs: dict[int, list] = {}
+    try:
+        for c in coarsen:
+            cfg = {**base, "scene": {**scene, "substeps": reference // c}}
+            runs[c] = []
+            for combination, seed in jobs:
+                start = time.perf_counter()
+                traj = module.make_trajectory(cfg, combination, seed, _NoSensor(int(scene.get("dim", 2))))
+                runs[c].append((time.perf_counter() - start, traj))
+        truth = np.stack([t.positions for _, t in _reference_runs(reference, base, scene, jobs, module, runs)])
+    finally:
+        torch.set_num_threads(threads)
+    rows = []
+    for c in coarsen:
+        pred = np.stack([t.positions for _, t in runs[c]])
+        steps = pred.shape[1] - 1
+        ms = 1e3 * statistics.median(seconds / steps for seconds, _ in runs[c])
+        rows.append({
+            "kind": "simulator", "name": "simulator", "setting": f"substeps={reference // c} (coarsen {c}x)",
+            "device": "cpu (1 thread)", "nodes": int(pred.shape[2]), "steps": steps, "trajectories": len(jobs),
+            "ms_per_step_1": ms, "batch": 1, "ms_per_step_batched": ms, "ms_per_trajectory_step": ms,
+            "rollout_mse": rollout_mse(torch.from_numpy(pred), torch.from_numpy(truth))[0],
+            "reference": f"simulator substeps={reference}",
+        })
+    return rows
+
+
+def _reference_runs(reference, base, scene, jobs, module, runs):
+    """The reference trajectories: the c = 1 run if it was made, else simulated now (untimed)."""
+    if 1 in runs:
+        return runs[1]
+    cfg = {**base, "scene": {**scene, "substeps": reference}}
+    return [(0.0, module.make_trajectory(cfg, combination, seed, _NoSensor(int(scene.get("dim", 2))))) for combination, seed in jobs]
+
+
+def default_devices() -> list[str]:
+    return ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+def model_points(checkpoints: dict, dataset: str = "plate_small", schedules=("every:1", "never"), trajectories: int = 4,
+                 batch: int = 32, repeats: int = 3, devices=None, data_dir: str | None = None) -> list[dict]:
+    """One row per checkpoint x schedule x device (module docstring)."""
+    from ..bench import _bench_rollout
+    from ..data.module import SimulationDataModule
+    from ..evaluation.evaluate import split_trajectories
+    from ..evaluation.metrics import rollout_mse
+    from ..evaluation.schedules import parse_schedule
+    from ..graphs.state import TrajectoryBatch
+
+    if trajectories < 1 or batch < 1 or repeats < 1:
+        raise ValueError("trajectories, batch and repeats must be >= 1")
+    datamodule = SimulationDataModule(dataset=dataset, data_dir=data_dir)
+    datamodule.prepare_data()
+    tests = datamodule.trajectories("test")
+    scored = tests[:trajectories]
+    rows = []
+    for name, path in checkpoints.items():
+        model = load_simulator(path, map_location="cpu")
+        chosen = [parse_schedule(s) if isinstance(s, str) else s for s in schedules]
+        chosen = [s for s in chosen if model.uses_points or str(s) == "never"] or [parse_schedule("never")]
+        for device in devices or default_devices():
+            device = torch.device(device)
+            model.to(device)
+            one = TrajectoryBatch.from_trajectories(tests[:1], device=device)
+            many = TrajectoryBatch.from_trajectories([tests[i % len(tests)] for i in range(batch)], device=device)
+            error_batch = TrajectoryBatch.from_trajectories(scored, device=device)
+            steps = one.num_steps - 1
+            for schedule in chosen:
+                ms_one = _bench_rollout(model, one, schedule, steps, repeats, device)["ms per step"]
+                ms_many = _bench_rollout(model, many, schedule, steps, repeats, device)["ms per step"]
+                pred = split_trajectories(model.rollout(error_batch, schedule), error_batch)
+                true = split_trajectories(error_batch.positions, error_batch)
+                mse = float(np.mean([rollout_mse(p, t)[0] for p, t in zip(pred, true)]))
+                rows.append({
+                    "kind": "model", "name": name, "setting": str(schedule), "device": str(device),
+                    "nodes": int(np.mean(np.diff(one.node_offsets))), "steps": steps, "trajectories": len(scored),
+                    "ms_per_step_1": ms_one, "batch": batch, "ms_per_step_batched": ms_many,
+                    "ms_per_trajectory_step": ms_many / batch, "rollout_mse": mse, "reference": f"dataset {dataset} test",
+                })
+        model.cpu()
+    return rows
+
+
+def pareto_mask(rows: list[dict]) -> list[bool]:
+    """True for the rows no other row beats in both time per trajectory-step and error (lower is better)."""
+    pts = [(r["ms_per_trajectory_step"], r["rollout_mse"]) for r in rows]
+    return [not any(qx <= px and qy <= py and (qx, qy) != (px, py) for qx, qy in pts) for px, py in pts]
+
+
+def write_csv(rows: list[dict], path: str | Path) -> Path:
+    """Rows as CSV with the columns `COLUMNS` (missing ones empty; `pareto` filled in if absent)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    front = pareto_mask(rows) if rows else []
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(COLUMNS), extrasaction="ignore")
+        writer.writeheader()
+        for row, on_front in zip(rows, front):
+            writer.writerow({**row, "pareto": row.get("pareto", on_front)})
+    return path
+
+
+def pareto_plot(rows: list[dict], path: str | Path) -> Path:
+    """Log-log plot of rollout MSE against ms per trajectory-step: one labelled marker per point,
+    the simulator's points joined by a line, the Pareto front as a dashed step line."""
+    import matplotlib.pyplot as plt
+
+    from ..viz import save_figure
+
+    if not rows:
+        raise ValueError("nothing to plot")
+    xs = np.array([r["ms_per_trajectory_step"] for r in rows], dtype=float)
+    ys = np.array([r["rollout_mse"] for r in rows], dtype=float)
+    positive = ys[ys > 0]
+    floor = positive.min() / 10 if len(positive) else 1e-12  # zero errors are drawn here
+    shown = np.where(ys > 0, ys, floor)
+    fig, ax = plt.subplots(figsize=(7, 5))
+    sim = [i for i, r in enumerate(rows) if r["kind"] == "simulator"]
+    if sim:
+        order = sorted(sim, key=lambda i: xs[i])
+        ax.plot(xs[order], shown[order], "-o", color="black", label="simulator (coarser time steps)")
+    markers = iter("sD^vP*Xph<>")
+    for key in dict.fromkeys((r["name"], r["device"]) for r in rows if r["kind"] != "simulator"):
+        idx = [i for i, r in enumerate(rows) if (r["name"], r["device"]) == key and r["kind"] != "simulator"]
+        ax.scatter(xs[idx], shown[idx], marker=next(markers, "o"), s=50, label=f"{key[0]} ({key[1]})")
+    for i, r in enumerate(rows):
+        label = r["setting"] + (" = reference (error 0)" if ys[i] == 0 else "")
+        ax.annotate(label, (xs[i], shown[i]), textcoords="offset points", xytext=(5, 4), fontsize=7)
+    front = sorted((i for i, ok in enumerate(pareto_mask(rows)) if ok), key=lambda i: xs[i])
+    ax.step(xs[front], shown[front], where="post", ls="--", color="tab:red", lw=1, label="Pareto front")
+    ax.scatter(xs[front], shown[front], s=160, facecolors="none", edgecolors="tab:red")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlim(xs.min() / 2, xs.max() * 8)  # room for the labels right of the points
+    ax.set_xlabel("ms per trajectory-step")
+    ax.set_ylabel("rollout MSE")
+    ax.set_title("speed / accuracy trade")
+    ax.legend(fontsize=7)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def print_table(rows: list[dict]) -> None:
+    keys = [k for k in COLUMNS if any(k in r for r in rows)]
+    cells = [[_fmt(r.get(k, "")) for k in keys] for r in rows]
+    widths = [max(len(k), *(len(c[j]) for c in cells)) for j, k in enumerate(keys)]
+    for line in [keys] + cells:
+        print("  ".join(v.rjust(w) for v, w in zip(line, widths)))
+
+
+def _fmt(value) -> str:
+    return f"{value:.3g}" if isinstance(value, float) else str(value)
+
+
+def tradeoff(dataset: str = "plate_small", checkpoints: dict | None = None, trajectories: int = 4, coarsen=(1, 2, 5),
+             output_dir: str | Path = "lightning_logs/tradeoff", schedules=("every:1", "never"), batch: int = 32,
+             repeats: int = 3, grid_nodes: int | None = None, data_dir: str | None = None) -> list[dict]:
+    """Simulator and model points; writes <output_dir>/tradeoff.csv and tradeoff.png, prints the table."""
+    from ..config import load_config
+
+    rows = simulator_points(load_config(dataset), trajectories, coarsen, grid_nodes=grid_nodes)
+    if checkpoints:
+        rows += model_points(checkpoints, dataset, schedules, trajectories, batch=batch, repeats=repeats,
+                             data_dir=data_dir)
+    for row, on_front in zip(rows, pareto_mask(rows)):
+        row["pareto"] = on_front
+    out = Path(output_dir)
+    csv_path, png_path = write_csv(rows, out / "tradeoff.csv"), pareto_plot(rows, out / "tradeoff.png")
+    print_table(rows)
+    print(f"\nwrote {csv_path} and {png_path}")
+    return rows

@@ -1,0 +1,96 @@
+"""The speed/accuracy trade benchmark (ggns.experiments.tradeoff) on the plate_tiny preset."""
+from __future__ import annotations
+
+import csv
+import math
+
+import pytest
+import pytorch_lightning as pl
+import torch
+
+from ggns.config import load_config
+from ggns.data.module import SimulationDataModule
+
+from ggns.experiments.tradeoff import (COLUMNS, model_points, pareto_mask, pareto_plot,
+                                       reference_substeps_for, simulator_points, write_csv)
+from ggns.models.simulators import GGNS, MGN, load_simulator
+
+
+@pytest.fixture(scope="module")
+def sim_rows():
+    return simulator_points(load_config("plate_tiny"), trajectories=1, coarsen=(1, 2, 5))
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tiny_data_dir, tmp_path_factory):
+    """Tiny MGN and GGNS checkpoints: one training step each (normalizers fitted, saved with the weights)."""
+    root = tmp_path_factory.mktemp("ckpt")
+    paths = {}
+    for name, cls in (("mgn", MGN), ("ggns", GGNS)):
+        torch.manual_seed(0)
+        model = cls(latent=8, blocks=1, statistics_batches=1)
+        data = SimulationDataModule("plate_tiny", data_dir=str(tiny_data_dir), batch_size=4, generate_missing=False)
+        trainer = pl.Trainer(max_epochs=1, limit_train_batches=1, limit_val_batches=0, logger=False,
+                             enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+                             default_root_dir=root, accelerator="cpu")
+        trainer.fit(model, data)
+        paths[name] = root / f"{name}.ckpt"
+        trainer.save_checkpoint(paths[name])
+    return paths
+
+
+def test_reference_substeps():
+    assert reference_substeps_for(1, (1, 2, 5)) == 10
+    assert reference_substeps_for(10, (1, 2, 5)) == 10
+    assert reference_substeps_for(4, (1, 3)) == 12
+
+
+def test_simulator_points(sim_rows):
+    assert [r["setting"] for r in sim_rows] == ["substeps=10 (coarsen 1x)", "substeps=5 (coarsen 2x)",
+                                                 "substeps=2 (coarsen 5x)"]
+    assert sim_rows[0]["rollout_mse"] == 0.0  # the reference itself
+    for row in sim_rows[1:]:
+        assert math.isfinite(row["rollout_mse"]) and row["rollout_mse"] > 0
+    assert sim_rows[2]["rollout_mse"] > sim_rows[1]["rollout_mse"]  # coarser steps, larger error
+    for row in sim_rows:
+        assert row["ms_per_trajectory_step"] > 0 and row["nodes"] == 81 and row["steps"] == 7
+
+
+def test_simulator_mesh_resolution_and_errors():
+    rows = simulator_points(load_config("plate_tiny", ["scene.num_steps=3"]), trajectories=1, coarsen=(2, 4),
+                            grid_nodes=5)
+    assert [r["nodes"] for r in rows] == [25, 25] and all(r["rollout_mse"] > 0 for r in rows)  # reference 4 substeps, untimed
+    with pytest.raises(ValueError, match="divisible"):
+        simulator_points(load_config("plate_tiny"), trajectories=1, coarsen=(1, 3), reference_substeps=4)
+
+
+def test_checkpoint_class_is_detected(checkpoints):
+    assert type(load_simulator(checkpoints["mgn"])) is MGN
+    assert type(load_simulator(checkpoints["ggns"])) is GGNS
+
+
+def test_model_points(checkpoints, tiny_data_dir):
+    rows = model_points(checkpoints, "plate_tiny", ("every:1", "never"), trajectories=2, batch=3, repeats=1,
+                        devices=["cpu"], data_dir=str(tiny_data_dir))
+    assert [(r["name"], r["setting"]) for r in rows] == [("mgn", "never"), ("ggns", "every:1"), ("ggns", "never")]
+    for row in rows:
+        assert row["ms_per_step_1"] > 0 and row["ms_per_step_batched"] > 0
+        assert row["ms_per_trajectory_step"] == pytest.approx(row["ms_per_step_batched"] / 3)
+        assert math.isfinite(row["rollout_mse"]) and row["rollout_mse"] > 0
+        assert row["trajectories"] == 2 and row["steps"] == 7 and row["device"] == "cpu"
+
+
+def test_pareto_csv_and_plot(sim_rows, tmp_path):
+    rows = sim_rows + [
+        {"kind": "model", "name": "m", "setting": "never", "device": "cpu", "ms_per_trajectory_step": 1e-3, "rollout_mse": 1.0},
+        {"kind": "model", "name": "m", "setting": "slow", "device": "cpu", "ms_per_trajectory_step": 1e6, "rollout_mse": 2.0},
+    ]
+    front = pareto_mask(rows)
+    assert front[0] and front[-2] and not front[-1]  # zero-error reference and fastest model; the dominated one not
+    path = write_csv(rows, tmp_path / "t.csv")
+    with open(path) as f:
+        read = list(csv.DictReader(f))
+    assert tuple(read[0]) == COLUMNS and len(read) == len(rows)
+    assert [r["pareto"] for r in read] == [str(x) for x in front]
+    png = pareto_plot(rows, tmp_path / "t.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

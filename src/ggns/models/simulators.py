@@ -293,11 +293,24 @@ MODELS = {"ggns": GGNS, "ggns_lstm": GGNSLSTM, "mgn": MGN, "mgn_m": MGNM}
 
 
 def load_simulator(path: str | Path, map_location=None) -> GraphSimulator:
-    """Any of the four simulators from a Lightning checkpoint written by this library (the class
-    is stored under "simulator_class"), in eval mode."""
+    """Any of the four simulators from a Lightning checkpoint written by this library, in eval
+    mode. The class is stored in the checkpoint ("simulator_class"); for checkpoints without it
+    the class whose parameters load strictly is used (their parameter sets differ)."""
     checkpoint = torch.load(path, map_location=map_location, weights_only=False)
-    name = checkpoint.get("simulator_class")
     classes = {cls.__name__: cls for cls in MODELS.values()}
-    if name not in classes:
-        raise ValueError(f"{path}: not a ggns simulator checkpoint (simulator_class={name!r}; known: {sorted(classes)})")
-    return classes[name].load_from_checkpoint(path, map_location=map_location).eval()
+    name = checkpoint.get("simulator_class")
+    if name is not None:
+        if name not in classes:
+            raise ValueError(f"{path}: unknown simulator_class {name!r} (known: {sorted(classes)})")
+        return classes[name].load_from_checkpoint(path, map_location=map_location).eval()
+    if "hyper_parameters" not in checkpoint or "state_dict" not in checkpoint:
+        raise ValueError(f"{path}: not a Lightning checkpoint of a ggns simulator")
+    errors = []
+    for cls in classes.values():
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                return cls.load_from_checkpoint(path, map_location=map_location, strict=True).eval()
+        except (RuntimeError, KeyError, TypeError, ValueError) as error:
+            errors.append(f"{cls.__name__}: {str(error).splitlines()[0][:120]}")
+    raise ValueError(f"{path}: no simulator class loads this checkpoint ({'; '.join(errors)})")

@@ -64,9 +64,18 @@ def test_simulator_mesh_resolution_and_errors():
         simulator_points(load_config("plate_tiny"), trajectories=1, coarsen=(1, 3), reference_substeps=4)
 
 
-def test_checkpoint_class_is_detected(checkpoints):
+def test_checkpoint_class_is_detected(checkpoints, tmp_path):
     assert type(load_simulator(checkpoints["mgn"])) is MGN
     assert type(load_simulator(checkpoints["ggns"])) is GGNS
+    # a checkpoint without the stored class (older files): the class whose parameters load strictly
+    for name, cls in (("mgn", MGN), ("ggns", GGNS)):
+        ckpt = torch.load(checkpoints[name], weights_only=False)
+        assert ckpt.pop("simulator_class") == cls.__name__
+        torch.save(ckpt, tmp_path / f"{name}.ckpt")
+        assert type(load_simulator(tmp_path / f"{name}.ckpt")) is cls
+    torch.save({"state_dict": {}}, tmp_path / "other.ckpt")
+    with pytest.raises(ValueError, match="not a Lightning checkpoint"):
+        load_simulator(tmp_path / "other.ckpt")
 
 
 def test_model_points(checkpoints, tiny_data_dir):

@@ -9,30 +9,20 @@ wall-clock budget), test both on the test split, and write a report under the ou
 """
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
 import torch
 
 from .cli import build_cli
-from .config import CONF_DIR, load_config
-from .data.generate import generate, split_path
-from .data.schema import SplitReader
+from .config import CONF_DIR
+from .data.module import SimulationDataModule
 from .evaluation.schedules import EveryK, Never
 from .graphs.state import TrajectoryBatch
 from .viz import plot_trajectories, rollout_figure, save_figure
 
 MODELS = ("ggns", "mgn")
-
-
-def _prepare_data(preset: str) -> dict:
-    config = load_config(preset)
-    missing = [s for s in config["splits"] if not split_path(config["output"], s).exists()]
-    for split in sorted(set(config["splits"]) - set(missing)):
-        print(f"{split_path(config['output'], split)} exists, reusing it (delete it to regenerate)")
-    if missing:
-        generate(config, missing)
-    return config
 
 
 def train_and_test(name: str, output: Path, preset: str, minutes: float, test_trajectories: int = 9,
@@ -43,15 +33,18 @@ def train_and_test(name: str, output: Path, preset: str, minutes: float, test_tr
     args = ["--config", str(CONF_DIR / "plate" / f"{name}.yaml"), "--data.dataset", preset,
             "--trainer.max_time", f"00:{seconds // 3600:02d}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}",
             "--trainer.max_epochs", "1000", "--trainer.check_val_every_n_epoch", "1",
-            # half an epoch per "epoch": validation, rollout evaluation and checkpoint selection
-            # then happen every ~1-2 min, so a short budget still ends on a selected checkpoint
-            "--trainer.limit_train_batches", "0.5", "--trainer.limit_val_batches", "8",
+            "--trainer.limit_val_batches", "8",
             # the test: the first `test_trajectories` of the split (the first 9 of a balanced
             # plate split are 3 shapes x 3 materials), all at once
             "--data.max_eval_trajectories", str(test_trajectories), "--data.eval_batch_size", str(test_trajectories),
             "--trainer.enable_progress_bar", "false",
             "--trainer.logger.init_args.save_dir", str(output), "--trainer.logger.init_args.name", name, *extra]
     cli = build_cli(args, run=False)
+    # half an epoch per "epoch": validation, rollout evaluation and checkpoint selection then
+    # happen every ~1-2 min on plate_small, so a short budget still ends on a selected checkpoint
+    data = cli.datamodule
+    windows = sum(t.num_steps - cli.model.window for t in data.trajectories("train"))
+    cli.trainer.limit_train_batches = max(1, math.ceil(windows / data.batch_size) // 2)
     start = time.perf_counter()
     cli.trainer.fit(cli.model, datamodule=cli.datamodule)
     fit_seconds = time.perf_counter() - start
@@ -115,10 +108,9 @@ def run_demo(output: str | Path = "lightning_logs/demo", preset: str = "plate_sm
              models: tuple[str, ...] = MODELS, test_trajectories: int = 9, extra: list[str] = ()) -> Path:
     output = Path(output)
     start = time.perf_counter()
-    _prepare_data(preset)
-    with SplitReader(split_path(load_config(preset)["output"], "train")) as reader:
-        picked = [reader[i] for i in range(min(3, len(reader)))]
-    print(f"wrote {plot_trajectories(picked, output / 'plate_trajectories.png')}")
+    data = SimulationDataModule(preset)
+    data.prepare_data()  # generates the splits that are missing
+    print(f"wrote {plot_trajectories(data.trajectories('train')[:3], output / 'plate_trajectories.png')}")
     runs = [train_and_test(name, output, preset, minutes, test_trajectories, extra) for name in models]
     figures = rollout_pictures(runs, output / "rollouts.png")
     report = write_report(runs, output / "report.md", figures, preset, minutes, test_trajectories)

@@ -25,9 +25,6 @@ from .metrics import batch_iou, m_plus_10_mse, m_plus_10_starts, one_step_mse, r
 from .rollout import StepFn, m_plus_10_rollouts, one_step_predictions, rollout
 from .schedules import EveryK, FirstM, Never, Schedule
 
-PAPER_SCHEDULES = (EveryK(1), EveryK(2), EveryK(5), EveryK(10), Never())
-
-
 def schedule_key(schedule: Schedule) -> str:
     """Metric-name suffix of a schedule: EveryK(5) -> "k5", Never() -> "never", FirstM(3) -> "first3"."""
     if isinstance(schedule, EveryK):

@@ -30,7 +30,7 @@ from torch_geometric.data import HeteroData
 
 from ..evaluation.evaluate import MetricTable, evaluate_batch, markdown_table
 from ..evaluation.rollout import rollout
-from ..evaluation.schedules import Schedule, parse_schedule
+from ..evaluation.schedules import EveryK, Never, Schedule, parse_schedule
 from ..graphs.connectivity import Connectivity, load_connectivity
 from ..graphs.state import TrajectoryBatch
 from ..graphs.types import MESH_EDGE
@@ -174,7 +174,6 @@ class GraphSimulator(pl.LightningModule):
     def fit_normalizers(self, batches) -> int:
         """Statistics of inputs and targets over `batches` (training-time sampling), then freeze.
         Returns the number of samples seen."""
-        free = ~torch.zeros(0, dtype=torch.bool)
         count = 0
         for i, batch in enumerate(batches):
             if self.hparams.statistics_batches is not None and i >= self.hparams.statistics_batches:
@@ -206,7 +205,7 @@ class GraphSimulator(pl.LightningModule):
     def evaluate(self, batch: TrajectoryBatch, schedules=None, **kwargs) -> dict[str, Tensor]:
         """Per-trajectory paper metrics of this model on `batch` (`evaluation.evaluate_batch`)."""
         schedules = self.schedules if schedules is None else schedules
-        one_step = parse_schedule("every:1" if self.uses_points else "never")
+        one_step = EveryK(1) if self.uses_points else Never()
         with torch.no_grad():
             return evaluate_batch(self.step, batch, self.connectivity, schedules, with_material=self.with_material,
                                   one_step_schedule=one_step, **kwargs)

@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from ggns.config import CONF_DIR
+from ggns.experiments.baselines import GENERATED_MESH_FILE, baseline_spec, run_baselines
 from ggns.experiments.sweep import load_sweep, run_sweep, runs_of, slurm_script, summarize
 
 
@@ -18,7 +19,9 @@ def write_sweep(tmp_path, data_dir, seeds=(0, 1)) -> str:
             "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2", "--trainer.limit_val_batches", "1",
             "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
     sweep = {"output": str(tmp_path / "sweep"), "seeds": list(seeds), "parallel": 2, "args": tiny,
-             "models": {"mgn": {"config": str(CONF_DIR / "plate" / "mgn.yaml")}}}
+             "models": {"mgn": {"config": str(CONF_DIR / "plate" / "mgn.yaml")}},
+             "baselines": {"dataset": "plate_tiny", "data_dir": str(data_dir), "alpha_shapes": True,
+                           "initial_mesh": ["mgn"]}}
     path = tmp_path / "sweep.yaml"
     path.write_text(yaml.safe_dump(sweep))
     return str(path)
@@ -44,10 +47,22 @@ def test_two_seed_sweep_runs_skips_and_resumes(tiny_data_dir, tmp_path):
     assert "fit mgn seed 1" in messages and "fit mgn seed 0" not in messages
     assert runs[0].metrics_path.stat().st_mtime_ns == stamp and runs[1].finished
 
+    written = run_baselines(sweep, log=messages.append)
+    assert sorted(p.name for p in written) == [GENERATED_MESH_FILE] * 2 + ["test_metrics.json"]
+    alpha = json.loads((runs[0].output / "alpha_shapes" / "test_metrics.json").read_text())
+    generated = json.loads((runs[0].test_dir / GENERATED_MESH_FILE).read_text())
+    for metrics in (alpha, generated):
+        (name,) = [n for n in metrics if n.startswith("generated_mesh_iou_")]
+        assert metrics[name]["count"] == 2 and 0.3 < metrics[name]["mean"] <= 1.0
+    assert run_baselines(sweep, log=messages.append) == []  # computed once, then kept
+
     summary = summarize(sweep, log=messages.append).read_text()
     assert "2 of 2 runs finished" in summary and "| mgn |" in summary
+    assert "## Rollout IoU from a mesh generated from the first point cloud" in summary
+    assert "| alpha_shapes |" in summary and "generated_mesh_iou.png" in summary
     csv_text = (runs[0].output / "summary.csv").read_text()
-    assert "mgn,rollout_mse_never," in csv_text
+    assert "mgn,rollout_mse_never," in csv_text and "mgn,generated_mesh_iou_never," in csv_text
+    assert "alpha_shapes,generated_mesh_iou_k1," in csv_text
 
 
 def test_a_single_array_task_and_bad_sweeps(tiny_data_dir, tmp_path):
@@ -61,6 +76,10 @@ def test_a_single_array_task_and_bad_sweeps(tiny_data_dir, tmp_path):
     bad.write_text(yaml.safe_dump({"output": "x", "seeds": [0], "models": {"mgn": {"config": "nope.yaml"}}}))
     with pytest.raises(FileNotFoundError, match="nope.yaml"):
         load_sweep(bad)
+    with pytest.raises(ValueError, match=r"initial_mesh names models \['ggns'\]"):
+        baseline_spec({**sweep, "baselines": {"initial_mesh": ["ggns"]}})
+    with pytest.raises(ValueError, match="unknown keys"):
+        baseline_spec({**sweep, "baselines": {"alpha": True}})
 
 
 def test_slurm_script_has_one_task_per_run(tmp_path):
@@ -80,6 +99,7 @@ def test_every_run_of_every_sweep_preset_parses(preset, tmp_path):
     from ggns.cli import build_cli
 
     sweep = load_sweep(preset, [f"output={tmp_path}"])
+    baseline_spec(sweep)  # its baselines section, if any, is valid
     for run in {r.model: r for r in runs_of(sweep)}.values():
         argv = ["--config", run.config, "--seed_everything", str(run.seed),
                 "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]

@@ -66,6 +66,7 @@ def _demo(args: argparse.Namespace) -> None:
 
 
 def _sweep(args: argparse.Namespace) -> None:
+    from .experiments.baselines import run_baselines
     from .experiments.sweep import load_sweep, run_sweep, slurm_script, summarize
 
     sweep = load_sweep(args.config, args.overrides)
@@ -78,6 +79,7 @@ def _sweep(args: argparse.Namespace) -> None:
     if not args.aggregate_only:
         run_sweep(sweep, args.task)
     if args.task is None:
+        run_baselines(sweep)
         summarize(sweep)
 
 

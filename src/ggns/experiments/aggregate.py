@@ -120,15 +120,20 @@ def _metric_order(table: Table) -> list[str]:
 
 
 def to_markdown(table: Table, metrics: Sequence[str] | None = None, fmt: str = ".4g") -> str:
-    """Rows: models; columns: metrics (default: all, in first-seen order); cells "mean ± std",
-    "-" where a model lacks the metric (e.g. MGN has only the `_never` rollouts)."""
+    """Rows: models; columns: metrics (default: all, in first-seen order); cells "mean ± std"
+    (the mean alone where the std is NaN: one seed), "-" where a model lacks the metric (e.g. MGN has only the `_never` rollouts)."""
     metrics = list(metrics) if metrics is not None else _metric_order(table)
     lines = ["| model | " + " | ".join(metrics) + " |", "|---|" + "---|" * len(metrics)]
     for model, per_metric in table.items():
         cells = []
         for metric in metrics:
             s = per_metric.get(metric)
-            cells.append("-" if s is None else f"{format(s['mean'], fmt)} ± {format(s['std'], fmt)}")
+            if s is None:
+                cells.append("-")
+            elif math.isnan(s["std"]):  # one seed (or a deterministic baseline): no spread to report
+                cells.append(format(s["mean"], fmt))
+            else:
+                cells.append(f"{format(s['mean'], fmt)} ± {format(s['std'], fmt)}")
         lines.append(f"| {model} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

@@ -33,12 +33,14 @@ def _errorbar(ax, x: float, stats: dict) -> None:
 
 
 def draw_schedule_bars(ax, table: Table, prefix: str) -> None:
-    """Grouped bars of `<prefix><schedule>` per model (groups) and schedule (bars it has)."""
+    """Grouped bars of `<prefix><schedule>` per model (groups: the models that have any) and
+    schedule (bars it has)."""
     if not _has(table, prefix):
         raise ValueError(f"no {prefix}<schedule> metric in the table")
     width = 0.8 / len(SCHEDULES)
     labelled: set[str] = set()
-    for i, (model, per_metric) in enumerate(table.items()):
+    models = {m: per_metric for m, per_metric in table.items() if any(f"{prefix}{s}" in per_metric for s in SCHEDULES)}
+    for i, (model, per_metric) in enumerate(models.items()):
         present = [s for s in SCHEDULES if f"{prefix}{s}" in per_metric]
         for j, schedule in enumerate(present):
             stats = per_metric[f"{prefix}{schedule}"]
@@ -47,7 +49,7 @@ def draw_schedule_bars(ax, table: Table, prefix: str) -> None:
             labelled.add(schedule)
             ax.bar([x], [stats["mean"]], width=width, color=_COLORS[schedule], label=label)
             _errorbar(ax, x, stats)
-    ax.set_xticks(range(len(table)), list(table))
+    ax.set_xticks(range(len(models)), list(models))
     ax.legend(title="point cloud every")
 
 
@@ -106,6 +108,11 @@ def iou_bars(table: Table, path: str | Path) -> Path:
                    ylabel="rollout IoU", title="Rollout IoU (mean ± std over seeds)")
 
 
+def generated_mesh_iou_bars(table: Table, path: str | Path) -> Path:
+    return _figure(draw_schedule_bars, path, table=table, prefix="generated_mesh_iou_", ylim=(0.0, 1.0),
+                   ylabel="rollout IoU", title="IoU without the initial mesh (generated from the first point cloud)")
+
+
 def m_plus_10_bars(table: Table, path: str | Path) -> Path:
     return _figure(draw_m_plus_10_bars, path, table=table, yscale="log", ylabel="M+10 MSE",
                    title="M+10 MSE (mean ± std over seeds)")
@@ -118,7 +125,7 @@ def benefit_curve(table: Table, path: str | Path, ggns_model: str = "ggns", mgn_
 
 def write_figures(table: Table, directory: str | Path) -> list[Path]:
     """All figures the table supports, into `directory`: rollout_mse.png, m_plus_10.png,
-    rollout_iou.png, normalized_benefit.png (each skipped when its metrics are missing)."""
+    rollout_iou.png, generated_mesh_iou.png, normalized_benefit.png (each skipped when its metrics are missing)."""
     directory = Path(directory)
     paths = []
     if _has(table, "rollout_mse_"):
@@ -127,6 +134,8 @@ def write_figures(table: Table, directory: str | Path) -> list[Path]:
         paths.append(m_plus_10_bars(table, directory / "m_plus_10.png"))
     if _has(table, "rollout_iou_"):
         paths.append(iou_bars(table, directory / "rollout_iou.png"))
+    if _has(table, "generated_mesh_iou_"):
+        paths.append(generated_mesh_iou_bars(table, directory / "generated_mesh_iou.png"))
     if "ggns" in table and "mgn" in table:
         try:
             normalized_benefit(table)

@@ -27,7 +27,8 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from ..config import resolve_preset
-from .aggregate import aggregate, load_run, normalized_benefit, to_csv, to_markdown
+from .aggregate import RunResult, aggregate, load_run, normalized_benefit, to_csv, to_markdown
+from .baselines import ALPHA_SHAPES, GENERATED_MESH_FILE
 from .figures import write_figures
 
 
@@ -158,21 +159,54 @@ def slurm_script(sweep: dict, sweep_file: str | Path, partition: str | None = No
     return "\n".join(lines)
 
 
+def _run_result(run: Run) -> RunResult:
+    """A finished run's test metrics, with its generated-mesh baseline metrics when computed."""
+    result = load_run(run.metrics_path, run.model, run.seed)
+    extra = run.test_dir / GENERATED_MESH_FILE
+    if extra.is_file():
+        result.metrics.update(load_run(extra, run.model, run.seed).metrics)
+    return result
+
+
+# summary sections: (title, metric-name prefixes), in this order; other metrics go last
+SECTIONS = (("Full-rollout MSE (point cloud every k steps)", ("rollout_mse_",)),
+            ("One-step and m+10-step MSE", ("one_step_mse", "m10_mse")),
+            ("Rollout IoU (true initial mesh)", ("rollout_iou_",)),
+            ("Rollout IoU from a mesh generated from the first point cloud", ("generated_mesh_iou_",)))
+
+
+def _sections(table) -> list[str]:
+    metrics = list(dict.fromkeys(m for per_metric in table.values() for m in per_metric))
+    lines, used = [], set()
+    for title, prefixes in SECTIONS + (("Other metrics", None),):
+        chosen = [m for m in metrics if m not in used and (prefixes is None or m.startswith(prefixes))]
+        rows = {model: per_metric for model, per_metric in table.items() if any(m in per_metric for m in chosen)}
+        if chosen and rows:
+            used.update(chosen)
+            lines += [f"## {title}", "", to_markdown(rows, chosen)]
+    return lines
+
+
 def summarize(sweep: dict, log=print) -> Path:
-    """Aggregate the finished runs into <output>/summary.md and summary.csv (mean +- std over
-    seeds; the normalized benefit of point clouds when the sweep has `ggns` and `mgn`)."""
+    """Aggregate the finished runs (and the baselines computed by `run_baselines`) into
+    <output>/summary.md and summary.csv (mean +- std over seeds; the normalized benefit of
+    point clouds when the sweep has `ggns` and `mgn`) plus figures."""
     finished = [r for r in runs_of(sweep) if r.finished]
     if not finished:
         raise FileNotFoundError(f"{sweep['output']}: no finished run to aggregate")
-    table = aggregate([load_run(r.metrics_path, r.model, r.seed) for r in finished])
     output = Path(sweep["output"])
+    results = [_run_result(r) for r in finished]
+    alpha = output / ALPHA_SHAPES / "test_metrics.json"
+    if alpha.is_file():
+        results.append(load_run(alpha, ALPHA_SHAPES, 0))
+    table = aggregate(results)
     to_csv(table, output / "summary.csv")
-    lines = ["# Sweep summary", "", f"{len(finished)} of {len(runs_of(sweep))} runs finished; mean ± std over seeds.", "",
-             to_markdown(table)]
+    lines = ["# Sweep summary", "", f"{len(finished)} of {len(runs_of(sweep))} runs finished; mean ± std over seeds "
+             "(a single value where there is one seed or a deterministic baseline).", ""] + _sections(table)
     if "ggns" in table and "mgn" in table:
         try:
             benefit = normalized_benefit(table)
-            lines += ["", "Normalized benefit of point clouds (1 at k = 1, 0 at MGN):", "",
+            lines += ["## Normalized benefit of point clouds (1 at k = 1, 0 at MGN)", "",
                       "| k | " + " | ".join(map(str, benefit)) + " |", "|---|" + "---|" * len(benefit),
                       "| benefit | " + " | ".join(f"{v:.3f}" for v in benefit.values()) + " |"]
         except ValueError as error:

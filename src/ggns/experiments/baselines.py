@@ -1,0 +1,143 @@
+"""The paper's two point-cloud baselines of a sweep, scored on its test trajectories and stored
+beside its runs in the runs' own metric format ({metric: {"mean", "std", "count"}} over test
+trajectories), so `summarize` tabulates them with the learned models.
+
+    generated_mesh_iou_<s>   mean IoU (steps 1..T-1, as `rollout_iou_<s>`) of a rollout under
+                             schedule s that starts from a mesh GENERATED from the first point
+                             cloud instead of the true initial mesh ("initial mesh generation",
+                             `ggns.baselines.initial_mesh`); one file per finished run,
+                             <run test dir>/generated_mesh_metrics.json
+    alpha_shapes             a row of its own: every step's point cloud meshed by Alpha Shapes
+                             (`ggns.baselines.alpha_shapes`), reported as generated_mesh_iou_k1
+                             (a cloud every step, no initial mesh) and as rollout_iou_k1;
+                             <output>/alpha_shapes/test_metrics.json
+
+Configured by the sweep file's optional `baselines` section (2D datasets only):
+
+    baselines:
+      dataset: plate_small      # data preset whose test split is scored
+      data_dir: null            # overrides the preset's directory
+      max_trajectories: 9       # the first n test trajectories, as the runs' test (null: all)
+      alpha_shapes: true
+      initial_mesh: [ggns, mgn] # sweep models rolled out from the generated mesh, each under its
+                                # own evaluation schedules (the model's `eval_schedules`)
+
+Existing result files are kept (an interrupted sweep resumes); delete them to recompute.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ALPHA_SHAPES = "alpha_shapes"
+GENERATED_MESH_FILE = "generated_mesh_metrics.json"
+
+
+def _summary(values: dict[str, list[float]]) -> dict[str, dict[str, float]]:
+    """{name: per-trajectory values} -> {name: {"mean", "std" (population, over trajectories), "count"}},
+    the format of `MetricTable.summary`. A non-finite value raises ValueError naming the metric."""
+    out = {}
+    for name, xs in values.items():
+        v = np.asarray(xs, dtype=np.float64)
+        if not np.isfinite(v).all():
+            raise ValueError(f"baseline metric {name!r} is not finite for trajectories {np.flatnonzero(~np.isfinite(v)).tolist()}")
+        out[name] = {"mean": float(v.mean()), "std": float(v.std()), "count": int(v.size)}
+    return out
+
+
+def _write_json(path: Path, data: dict) -> None:
+    """Write via a temporary file and rename, so an interrupted write leaves no partial result."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2))
+    tmp.replace(path)
+
+
+def alpha_shapes_metrics(trajectories) -> dict[str, dict[str, float]]:
+    """Alpha Shapes on every step's point cloud of each trajectory, scored like a rollout
+    (mean IoU over steps 1..T-1 per trajectory)."""
+    from ..baselines.alpha_shapes import trajectory_alpha_iou
+
+    per_traj = [float(trajectory_alpha_iou(traj)[1:].mean()) for traj in trajectories]
+    return _summary({"generated_mesh_iou_k1": per_traj, "rollout_iou_k1": per_traj})
+
+
+def generated_mesh_metrics(model, trajectories, schedules=None) -> dict[str, dict[str, float]]:
+    """IoU of `model`'s rollouts from meshes generated from each trajectory's first point cloud,
+    under each schedule (default: the model's `eval_schedules`), batched over trajectories."""
+    from ..baselines.initial_mesh import generated_trajectory, mesh_iou
+    from ..evaluation.evaluate import schedule_key, split_trajectories
+    from ..evaluation.schedules import parse_schedule
+    from ..graphs.state import TrajectoryBatch
+
+    schedules = list(model.hparams.eval_schedules if schedules is None else schedules)
+    generated = [generated_trajectory(traj) for traj in trajectories]
+    batch = TrajectoryBatch.from_trajectories(generated, device=model.device, dtype=model.dtype)
+    values: dict[str, list[float]] = {}
+    for text in schedules:
+        schedule = parse_schedule(text) if isinstance(text, str) else text
+        pred = split_trajectories(model.rollout(batch, schedule), batch)
+        name = f"generated_mesh_iou_{schedule_key(schedule)}"
+        values[name] = [
+            float(np.mean([mesh_iou(p[0, t].double().numpy(), gen.cells, traj.positions[t], traj.cells)
+                           for t in range(1, traj.num_steps)]))
+            for p, gen, traj in zip(pred, generated, trajectories)]
+    return _summary(values)
+
+
+def _test_trajectories(spec: dict):
+    from ..data.module import SimulationDataModule
+
+    module = SimulationDataModule(spec.get("dataset", "plate_small"), data_dir=spec.get("data_dir"),
+                                  max_eval_trajectories=spec.get("max_trajectories"), generate_missing=False)
+    return module.trajectories("test")
+
+
+def baseline_spec(sweep: dict) -> dict:
+    """The sweep's `baselines` section, checked ({} when absent)."""
+    spec = sweep.get("baselines") or {}
+    unknown = set(spec) - {"dataset", "data_dir", "max_trajectories", "alpha_shapes", "initial_mesh"}
+    if unknown:
+        raise ValueError(f"sweep baselines: unknown keys {sorted(unknown)}")
+    models = spec.get("initial_mesh") or []
+    if isinstance(models, str):
+        models = [models]
+    missing = [m for m in models if m not in sweep["models"]]
+    if missing:
+        raise ValueError(f"sweep baselines: initial_mesh names models {missing} that the sweep does not have "
+                         f"({sorted(sweep['models'])})")
+    return {**spec, "initial_mesh": list(models)}
+
+
+def run_baselines(sweep: dict, log=print) -> list[Path]:
+    """Compute the missing baseline results of the sweep (see the module docstring): Alpha Shapes
+    once, and the generated-mesh rollouts for every finished run of the `initial_mesh` models.
+    Returns the files written."""
+    from ..models.simulators import load_simulator
+    from .sweep import runs_of
+
+    spec = baseline_spec(sweep)
+    if not spec.get("alpha_shapes") and not spec["initial_mesh"]:
+        return []
+    written: list[Path] = []
+    trajectories = None
+    alpha_path = Path(sweep["output"]) / ALPHA_SHAPES / "test_metrics.json"
+    if spec.get("alpha_shapes") and not alpha_path.is_file():
+        trajectories = _test_trajectories(spec)
+        log(f"baseline alpha shapes on {len(trajectories)} test trajectories")
+        _write_json(alpha_path, alpha_shapes_metrics(trajectories))
+        written.append(alpha_path)
+    for run in runs_of(sweep):
+        path = run.test_dir / GENERATED_MESH_FILE
+        if run.model not in spec["initial_mesh"] or not run.finished or path.is_file():
+            continue
+        trajectories = trajectories if trajectories is not None else _test_trajectories(spec)
+        log(f"baseline initial mesh generation: {run.model} seed {run.seed}")
+        model = load_simulator(run.checkpoint(), map_location="cpu")
+        with torch.no_grad():
+            _write_json(path, generated_mesh_metrics(model, trajectories))
+        written.append(path)
+    return written

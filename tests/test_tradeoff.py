@@ -103,3 +103,24 @@ def test_pareto_csv_and_plot(sim_rows, tmp_path):
     assert [r["pareto"] for r in read] == [str(x) for x in front]
     png = pareto_plot(rows, tmp_path / "t.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_tradeoff_at_two_mesh_resolutions(checkpoints, tiny_data_dir, tmp_path):
+    """The simulator and the models at the preset's resolution and at a finer one, whose test
+    trajectories (with point clouds) are generated once beside the dataset."""
+    from ggns.config import load_config
+    from ggns.experiments.tradeoff import tradeoff
+
+    preset = int(load_config("plate_tiny")["scene"]["grid_nodes"])
+    finer = preset + 2
+    rows = tradeoff("plate_tiny", checkpoints, trajectories=1, coarsen=(1, 2), output_dir=tmp_path / "out",
+                    schedules=("every:1", "never"), batch=2, repeats=1, grid_nodes=[preset, finer],
+                    data_dir=str(tiny_data_dir))
+    nodes = {(r["kind"], r["name"], r["setting"], r["nodes"]) for r in rows}
+    for n in (preset, finer):
+        assert ("model", "ggns", "every:1", n * n) in nodes and ("model", "mgn", "never", n * n) in nodes
+        assert sum(1 for r in rows if r["kind"] == "simulator" and r["nodes"] == n * n) == 2
+    finer_rows = [r for r in rows if r["kind"] == "model" and r["nodes"] == finer * finer]
+    assert all(f"_grid{finer}" in r["reference"] and "trained at" in r["reference"] for r in finer_rows)
+    assert all(math.isfinite(r["rollout_mse"]) and r["ms_per_step_1"] > 0 for r in rows)
+    assert (tmp_path / "out" / "tradeoff.csv").is_file() and (tmp_path / "out" / "tradeoff.png").is_file()

@@ -47,7 +47,8 @@ def _bench(args: argparse.Namespace) -> None:
         tradeoff(args.dataset, checkpoints, trajectories=args.trajectories or 4,
                  coarsen=tuple(int(c) for c in args.coarsen.split(",") if c.strip()), output_dir=args.output_dir,
                  schedules=tuple(s.strip() for s in args.schedules.split(",") if s.strip()),
-                 batch=args.rollout_trajectories, repeats=args.repeats, grid_nodes=args.grid_nodes)
+                 batch=args.rollout_trajectories, repeats=args.repeats,
+                 grid_nodes=[int(n) for n in args.grid_nodes.split(",") if n.strip()] if args.grid_nodes else None)
         return
     if args.what == "models":
         models = tuple(m.strip() for m in args.models.split(",") if m.strip())
@@ -123,7 +124,8 @@ def main(argv: list[str] | None = None) -> None:
     bench.add_argument("--checkpoint", action="append", metavar="NAME=PATH", help="tradeoff: a model checkpoint (repeatable)")
     bench.add_argument("--coarsen", default="1,2,5", help="tradeoff: simulator time-step coarsening factors")
     bench.add_argument("--schedules", default="every:1,never", help="tradeoff: point-cloud schedules of the model rollouts")
-    bench.add_argument("--grid-nodes", type=int, help="tradeoff: simulator mesh nodes per side (default: the preset's)")
+    bench.add_argument("--grid-nodes", help="tradeoff: mesh nodes per side, comma-separated resolutions for the simulator "
+                       "and the models (default: the preset's)")
     bench.add_argument("--output-dir", default="lightning_logs/tradeoff", help="tradeoff: where tradeoff.csv/.png go")
     bench.set_defaults(run=_bench)
 

@@ -15,8 +15,12 @@ the preset's test split (same combination and seed as `generate`), simulated by 
 worker); the time is the whole call (scene set-up included, sensor excluded) divided by the
 T - 1 simulated frames, median over the trajectories. Mesh resolution: the plate scene exposes
 `scene.grid_nodes` (nodes per side); `grid_nodes` overrides it for the simulator (reference and
-coarse runs alike) and the node count is recorded. The learned models are evaluated on the stored
-dataset, i.e. at the preset's resolution.
+coarse runs alike) and the node count is recorded. `tradeoff` takes several resolutions: at the
+preset's own the learned models are evaluated on the stored test split; at any other,
+`resolution_tests` generates test trajectories at that resolution (real point clouds, same scenes
+and seeds) into `<preset output>_grid<N>`, and the models are timed and scored on them. The models
+were trained at the preset's resolution, so their error at another one is out of distribution
+(the column `reference` says so); their time per step is what the resolution costs.
 
 Model points (`model_points`): each checkpoint is loaded with `models.simulators.load_simulator`
 (the class is stored in the checkpoint). Rollouts of whole test trajectories per
@@ -127,9 +131,32 @@ def default_devices() -> list[str]:
     return ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
+def resolution_tests(config: dict, grid_nodes: int, count: int, log=print):
+    """`count` test trajectories of the preset `config` at `grid_nodes` nodes per side (its scenes
+    and seeds, real point clouds), generated once into `<output>_grid<grid_nodes>/test.h5` and
+    regenerated when that file holds fewer. Returns (trajectories, data directory)."""
+    from ..data.generate import generate, split_path
+    from ..data.schema import read_trajectories
+
+    if int(grid_nodes) < 2 or count < 1:
+        raise ValueError(f"need grid_nodes >= 2 and count >= 1, got {grid_nodes}, {count}")
+    output = Path(f"{config['output']}_grid{int(grid_nodes)}")
+    cfg = {**config, "scene": {**config["scene"], "grid_nodes": int(grid_nodes)},
+           "splits": {"test": int(count)}, "output": str(output)}
+    path = split_path(output, "test")
+    tests = read_trajectories(path) if path.exists() else []
+    if len(tests) < count:
+        log(f"generating {count} test trajectories at {grid_nodes} x {grid_nodes} nodes into {output}")
+        generate(cfg, ["test"], overwrite=path.exists(), progress=False)
+        tests = read_trajectories(path)
+    return tests[:count], output
+
+
 def model_points(checkpoints: dict, dataset: str = "plate_small", schedules=("every:1", "never"), trajectories: int = 4,
-                 batch: int = 32, repeats: int = 3, devices=None, data_dir: str | None = None) -> list[dict]:
-    """One row per checkpoint x schedule x device (module docstring)."""
+                 batch: int = 32, repeats: int = 3, devices=None, data_dir: str | None = None,
+                 tests: list | None = None, reference: str | None = None) -> list[dict]:
+    """One row per checkpoint x schedule x device (module docstring). `tests`: the test
+    trajectories to use instead of the dataset's test split (`reference` then names them)."""
     from ..bench import _bench_rollout
     from ..data.module import SimulationDataModule
     from ..evaluation.evaluate import split_trajectories
@@ -139,9 +166,11 @@ def model_points(checkpoints: dict, dataset: str = "plate_small", schedules=("ev
 
     if trajectories < 1 or batch < 1 or repeats < 1:
         raise ValueError("trajectories, batch and repeats must be >= 1")
-    datamodule = SimulationDataModule(dataset=dataset, data_dir=data_dir)
-    datamodule.prepare_data()
-    tests = datamodule.trajectories("test")
+    if tests is None:
+        datamodule = SimulationDataModule(dataset=dataset, data_dir=data_dir)
+        datamodule.prepare_data()
+        tests = datamodule.trajectories("test")
+    reference = reference or f"dataset {dataset} test"
     scored = tests[:trajectories]
     rows = []
     for name, path in checkpoints.items():
@@ -165,7 +194,7 @@ def model_points(checkpoints: dict, dataset: str = "plate_small", schedules=("ev
                     "kind": "model", "name": name, "setting": str(schedule), "device": str(device),
                     "nodes": int(np.mean(np.diff(one.node_offsets))), "steps": steps, "trajectories": len(scored),
                     "ms_per_step_1": ms_one, "batch": batch, "ms_per_step_batched": ms_many,
-                    "ms_per_trajectory_step": ms_many / batch, "rollout_mse": mse, "reference": f"dataset {dataset} test",
+                    "ms_per_trajectory_step": ms_many / batch, "rollout_mse": mse, "reference": reference,
                 })
         model.cpu()
     return rows
@@ -205,16 +234,23 @@ def pareto_plot(rows: list[dict], path: str | Path) -> Path:
     floor = positive.min() / 10 if len(positive) else 1e-12  # zero errors are drawn here
     shown = np.where(ys > 0, ys, floor)
     fig, ax = plt.subplots(figsize=(7, 5))
-    sim = [i for i, r in enumerate(rows) if r["kind"] == "simulator"]
-    if sim:
-        order = sorted(sim, key=lambda i: xs[i])
-        ax.plot(xs[order], shown[order], "-o", color="black", label="simulator (coarser time steps)")
+    resolutions = list(dict.fromkeys(r.get("nodes") for r in rows))
+    shades = dict(zip(resolutions, ("black", "dimgray", "darkgray", "silver")))
+    for nodes in resolutions:
+        sim = [i for i, r in enumerate(rows) if r["kind"] == "simulator" and r.get("nodes") == nodes]
+        if sim:
+            order = sorted(sim, key=lambda i: xs[i])
+            where = f", {nodes} nodes" if len(resolutions) > 1 else ""
+            ax.plot(xs[order], shown[order], "-o", color=shades.get(nodes, "black"),
+                    label=f"simulator (coarser time steps{where})")
     markers = iter("sD^vP*Xph<>")
     for key in dict.fromkeys((r["name"], r["device"]) for r in rows if r["kind"] != "simulator"):
         idx = [i for i, r in enumerate(rows) if (r["name"], r["device"]) == key and r["kind"] != "simulator"]
         ax.scatter(xs[idx], shown[idx], marker=next(markers, "o"), s=50, label=f"{key[0]} ({key[1]})")
     for i, r in enumerate(rows):
         label = r["setting"] + (" = reference (error 0)" if ys[i] == 0 else "")
+        if len(resolutions) > 1:
+            label += f" [{r.get('nodes')} nodes]"
         ax.annotate(label, (xs[i], shown[i]), textcoords="offset points", xytext=(5, 4), fontsize=7)
     front = sorted((i for i, ok in enumerate(pareto_mask(rows)) if ok), key=lambda i: xs[i])
     ax.step(xs[front], shown[front], where="post", ls="--", color="tab:red", lw=1, label="Pareto front")
@@ -245,14 +281,27 @@ def _fmt(value) -> str:
 
 def tradeoff(dataset: str = "plate_small", checkpoints: dict | None = None, trajectories: int = 4, coarsen=(1, 2, 5),
              output_dir: str | Path = "lightning_logs/tradeoff", schedules=("every:1", "never"), batch: int = 32,
-             repeats: int = 3, grid_nodes: int | None = None, data_dir: str | None = None) -> list[dict]:
-    """Simulator and model points; writes <output_dir>/tradeoff.csv and tradeoff.png, prints the table."""
+             repeats: int = 3, grid_nodes=None, data_dir: str | None = None) -> list[dict]:
+    """Simulator and model points at each mesh resolution in `grid_nodes` (nodes per side; an int,
+    a list, or None for the preset's); writes <output_dir>/tradeoff.csv and tradeoff.png and
+    prints the table."""
     from ..config import load_config
 
-    rows = simulator_points(load_config(dataset), trajectories, coarsen, grid_nodes=grid_nodes)
-    if checkpoints:
-        rows += model_points(checkpoints, dataset, schedules, trajectories, batch=batch, repeats=repeats,
-                             data_dir=data_dir)
+    config = load_config(dataset)
+    preset = int(config["scene"].get("grid_nodes", 0)) or None
+    resolutions = [preset] if grid_nodes is None else [int(n) for n in np.atleast_1d(grid_nodes)]
+    rows = []
+    for nodes in resolutions:
+        rows += simulator_points(config, trajectories, coarsen, grid_nodes=nodes)
+        if not checkpoints:
+            continue
+        if nodes == preset:
+            rows += model_points(checkpoints, dataset, schedules, trajectories, batch=batch, repeats=repeats,
+                                 data_dir=data_dir)
+        else:
+            tests, directory = resolution_tests({**config, "output": data_dir or config["output"]}, nodes, trajectories)
+            rows += model_points(checkpoints, dataset, schedules, trajectories, batch=batch, repeats=repeats,
+                                 tests=tests, reference=f"{directory} test (models trained at {preset} per side)")
     for row, on_front in zip(rows, pareto_mask(rows)):
         row["pareto"] = on_front
     out = Path(output_dir)

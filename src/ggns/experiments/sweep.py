@@ -29,6 +29,7 @@ from omegaconf import OmegaConf
 from ..config import resolve_preset
 from .aggregate import RunResult, aggregate, load_run, normalized_benefit, to_csv, to_markdown
 from .baselines import ALPHA_SHAPES, GENERATED_MESH_FILE
+from .findings import check_findings, findings_markdown
 from .figures import write_figures
 
 
@@ -211,7 +212,8 @@ def summarize(sweep: dict, log=print) -> Path:
                       "| benefit | " + " | ".join(f"{v:.3f}" for v in benefit.values()) + " |"]
         except ValueError as error:
             lines += ["", f"Normalized benefit not computed: {error}"]
-    lines += [""] + [f"![{figure.stem}]({figure.name})" for figure in write_figures(table, output)]
+    lines += ["", "## The paper's findings on this sweep", "", findings_markdown(check_findings(table))]
+    lines += [f"![{figure.stem}]({figure.name})" for figure in write_figures(table, output)]
     path = output / "summary.md"
     path.write_text("\n".join(lines) + "\n")
     log(f"wrote {path} and {output / 'summary.csv'}")

@@ -1,0 +1,96 @@
+"""The GGNS paper's Deformable Plate findings, checked on an aggregated sweep table.
+
+Each check compares seed means (`aggregate` table; model names as in the sweep presets:
+ggns, ggns_lstm, mgn, mgn_m) and returns a `Finding`: its statement, whether it holds, and the
+numbers it rests on. A finding whose models or metrics the table lacks is reported as not
+checked (holds=None), never as holding. The checks are our reading of the paper's claims:
+
+1. full-rollout MSE orders GGNS k=1 < GGNS k=2 < MGN(M) < MGN (MGN and MGN(M): `_never`);
+2. GGNS k=2 is at least 10x below MGN;
+3. the m+10-step MSE orders GGNS < MGN(M) < MGN;
+4. the normalized benefit of point clouds falls as k grows (strictly, over k = 1, 2, 5, 10);
+5. GGNS+LSTM is not better than GGNS: at every k both have, the LSTM's mean is not below the
+   GGNS mean by more than the larger of their seed stds (a difference inside the seed spread
+   does not count as better).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .aggregate import Table, normalized_benefit
+
+
+@dataclass
+class Finding:
+    claim: str
+    holds: bool | None  # None: not checked (a model or metric missing)
+    evidence: str
+
+    @property
+    def verdict(self) -> str:
+        return {True: "holds", False: "does not hold", None: "not checked"}[self.holds]
+
+
+def _get(table: Table, model: str, metric: str) -> dict | None:
+    return table.get(model, {}).get(metric)
+
+
+def _chain(table: Table, items: list[tuple[str, str, str]]) -> tuple[bool | None, str]:
+    """Whether the seed means of (label, model, metric) items increase strictly, and the numbers."""
+    values = [(label, _get(table, model, metric)) for label, model, metric in items]
+    missing = [label for label, v in values if v is None]
+    if missing:
+        return None, f"missing: {', '.join(missing)}"
+    means = [v["mean"] for _, v in values]
+    return all(a < b for a, b in zip(means, means[1:])), ", ".join(f"{label} {v['mean']:.3g}" for label, v in values)
+
+
+def check_findings(table: Table, ks=(1, 2, 5, 10)) -> list[Finding]:
+    """The five findings of the module docstring, in that order."""
+    findings = []
+    holds, ev = _chain(table, [("GGNS k=1", "ggns", "rollout_mse_k1"), ("GGNS k=2", "ggns", "rollout_mse_k2"),
+                               ("MGN(M)", "mgn_m", "rollout_mse_never"), ("MGN", "mgn", "rollout_mse_never")])
+    findings.append(Finding("full-rollout MSE: GGNS k=1 < GGNS k=2 < MGN(M) < MGN", holds, ev))
+
+    k2, mgn = _get(table, "ggns", "rollout_mse_k2"), _get(table, "mgn", "rollout_mse_never")
+    if k2 is None or mgn is None:
+        findings.append(Finding("GGNS k=2 at least 10x below MGN", None, "missing: GGNS k=2 or MGN"))
+    else:
+        ratio = mgn["mean"] / k2["mean"] if k2["mean"] > 0 else math.inf
+        findings.append(Finding("GGNS k=2 at least 10x below MGN", ratio >= 10.0,
+                                f"MGN / GGNS k=2 = {mgn['mean']:.3g} / {k2['mean']:.3g} = {ratio:.2f}x"))
+
+    holds, ev = _chain(table, [("GGNS", "ggns", "m10_mse"), ("MGN(M)", "mgn_m", "m10_mse"), ("MGN", "mgn", "m10_mse")])
+    findings.append(Finding("m+10-step MSE: GGNS < MGN(M) < MGN", holds, ev))
+
+    try:
+        benefit = normalized_benefit(table, ks=ks)
+    except ValueError as error:
+        findings.append(Finding("normalized benefit of point clouds falls as k grows", None, str(error)))
+    else:
+        values = list(benefit.values())
+        findings.append(Finding("normalized benefit of point clouds falls as k grows",
+                                all(a > b for a, b in zip(values, values[1:])),
+                                ", ".join(f"k={k}: {v:.3f}" for k, v in benefit.items())))
+
+    shared = [k for k in ks if _get(table, "ggns", f"rollout_mse_k{k}") and _get(table, "ggns_lstm", f"rollout_mse_k{k}")]
+    if not shared:
+        findings.append(Finding("GGNS+LSTM not better than GGNS", None, "missing: ggns or ggns_lstm rollout_mse_k<k>"))
+    else:
+        better, parts = [], []
+        for k in shared:
+            g, lstm = table["ggns"][f"rollout_mse_k{k}"], table["ggns_lstm"][f"rollout_mse_k{k}"]
+            spread = max((s for s in (g["std"], lstm["std"]) if math.isfinite(s)), default=0.0)
+            if lstm["mean"] < g["mean"] - spread:
+                better.append(k)
+            parts.append(f"k={k}: LSTM {lstm['mean']:.3g} vs GGNS {g['mean']:.3g} (spread {spread:.2g})")
+        evidence = "; ".join(parts) + (f"; LSTM better beyond the seed spread at k = {better}" if better else "")
+        findings.append(Finding("GGNS+LSTM not better than GGNS", not better, evidence))
+    return findings
+
+
+def findings_markdown(findings: list[Finding]) -> str:
+    lines = ["| paper finding | on this sweep | numbers (seed means) |", "|---|---|---|"]
+    lines += [f"| {f.claim} | {f.verdict} | {f.evidence} |" for f in findings]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,65 @@
+"""The paper's plate findings checked on hand-made aggregated tables (ggns.experiments.findings)."""
+from __future__ import annotations
+
+import math
+
+from ggns.experiments.findings import check_findings, findings_markdown
+
+
+def stat(mean, std=0.0):
+    return {"mean": mean, "std": std, "seeds": 3}
+
+
+def paper_like():
+    """A table in which every finding holds."""
+    ggns = {f"rollout_mse_k{k}": stat(v, 0.1 * v) for k, v in ((1, 1e-4), (2, 2e-4), (5, 5e-4), (10, 9e-4))}
+    ggns["m10_mse"] = stat(1e-5)
+    lstm = {f"rollout_mse_k{k}": stat(1.1 * ggns[f"rollout_mse_k{k}"]["mean"], 1e-5) for k in (1, 2, 5, 10)}
+    return {"ggns": ggns, "ggns_lstm": lstm,
+            "mgn_m": {"rollout_mse_never": stat(1e-3), "m10_mse": stat(2e-5)},
+            "mgn": {"rollout_mse_never": stat(5e-3), "m10_mse": stat(3e-5)}}
+
+
+def verdicts(table):
+    return [f.holds for f in check_findings(table)]
+
+
+def test_all_findings_hold_on_a_paper_like_table():
+    findings = check_findings(paper_like())
+    assert [f.holds for f in findings] == [True] * 5
+    assert "25.00x" in findings[1].evidence  # 5e-3 / 2e-4
+    assert "k=1: 1.000" in findings[3].evidence
+    text = findings_markdown(findings)
+    assert text.count("| holds |") == 5
+
+
+def test_each_finding_can_fail():
+    t = paper_like()
+    t["ggns"]["rollout_mse_k2"] = stat(2e-3)  # above MGN(M): order broken, ratio 2.5x, benefit still falls
+    assert verdicts(t)[:2] == [False, False]
+    t = paper_like()
+    t["mgn_m"]["m10_mse"] = stat(5e-6)  # MGN(M) below GGNS on m+10
+    assert verdicts(t)[2] is False
+    t = paper_like()
+    t["ggns"]["rollout_mse_k10"] = stat(4e-4)  # benefit at k = 10 above k = 5
+    assert verdicts(t)[3] is False
+    t = paper_like()
+    t["ggns_lstm"]["rollout_mse_k5"] = stat(1e-4, 1e-6)  # LSTM well below GGNS at k = 5
+    finding = check_findings(t)[4]
+    assert finding.holds is False and "k = [5]" in finding.evidence
+
+
+def test_lstm_inside_the_seed_spread_is_not_better():
+    t = paper_like()
+    t["ggns_lstm"]["rollout_mse_k2"] = stat(0.95 * 2e-4, 1e-6)  # 5 % lower, GGNS std is 10 %
+    assert check_findings(t)[4].holds is True
+    t["ggns"]["rollout_mse_k2"]["std"] = math.nan  # one seed: no spread, so lower is better
+    t["ggns_lstm"]["rollout_mse_k2"]["std"] = math.nan
+    assert check_findings(t)[4].holds is False
+
+
+def test_missing_models_are_not_checked_never_held():
+    t = {"ggns": paper_like()["ggns"]}
+    findings = check_findings(t)
+    assert [f.holds for f in findings] == [None] * 5
+    assert "missing" in findings[0].evidence and "not checked" in findings_markdown(findings)

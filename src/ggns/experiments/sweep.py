@@ -188,6 +188,27 @@ def _sections(table) -> list[str]:
     return lines
 
 
+def _training_markdown(runs: list[Run]) -> str:
+    """Per run: optimizer steps and epochs of the tested checkpoint and of the fit's last one."""
+    import torch
+
+    def progress(path: Path) -> str:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+        return f"{checkpoint.get('global_step', '?')} / {checkpoint.get('epoch', '?')}"
+
+    lines = ["| model | seed | tested checkpoint | its steps / epoch | last steps / epoch |", "|---|---|---|---|---|"]
+    for run in runs:
+        try:
+            tested = run.checkpoint()
+        except FileNotFoundError:  # checkpoints removed after testing
+            lines.append(f"| {run.model} | {run.seed} | (removed) | - | - |")
+            continue
+        last = run.fit_dir / "checkpoints" / "last.ckpt"
+        lines.append(f"| {run.model} | {run.seed} | {tested.name} | {progress(tested)} | "
+                     f"{progress(last) if last.is_file() else '-'} |")
+    return "\n".join(lines) + "\n"
+
+
 def summarize(sweep: dict, log=print) -> Path:
     """Aggregate the finished runs (and the baselines computed by `run_baselines`) into
     <output>/summary.md and summary.csv (mean +- std over seeds; the normalized benefit of
@@ -213,6 +234,7 @@ def summarize(sweep: dict, log=print) -> Path:
         except ValueError as error:
             lines += ["", f"Normalized benefit not computed: {error}"]
     lines += ["", "## The paper's findings on this sweep", "", findings_markdown(check_findings(table))]
+    lines += ["## Training of each run", "", _training_markdown(finished)]
     lines += [f"![{figure.stem}]({figure.name})" for figure in write_figures(table, output)]
     path = output / "summary.md"
     path.write_text("\n".join(lines) + "\n")

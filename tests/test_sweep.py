@@ -20,7 +20,7 @@ def write_sweep(tmp_path, data_dir, seeds=(0, 1)) -> str:
             "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
     sweep = {"output": str(tmp_path / "sweep"), "seeds": list(seeds), "parallel": 2, "args": tiny,
              "models": {"mgn": {"config": str(CONF_DIR / "plate" / "mgn.yaml")}},
-             "baselines": {"dataset": "plate_tiny", "data_dir": str(data_dir), "alpha_shapes": True,
+             "baselines": {"dataset": "plate_tiny", "data_dir": str(data_dir), "alpha_shapes": True, "static": True,
                            "initial_mesh": ["mgn"]}}
     path = tmp_path / "sweep.yaml"
     path.write_text(yaml.safe_dump(sweep))
@@ -48,7 +48,10 @@ def test_two_seed_sweep_runs_skips_and_resumes(tiny_data_dir, tmp_path):
     assert runs[0].metrics_path.stat().st_mtime_ns == stamp and runs[1].finished
 
     written = run_baselines(sweep, log=messages.append)
-    assert sorted(p.name for p in written) == [GENERATED_MESH_FILE] * 2 + ["test_metrics.json"]
+    assert sorted(p.name for p in written) == [GENERATED_MESH_FILE] * 2 + ["test_metrics.json"] * 2
+    static = json.loads((runs[0].output / "static" / "test_metrics.json").read_text())
+    assert static["rollout_mse_never"]["count"] == 2 and static["rollout_mse_never"]["mean"] > 0
+    assert 0.0 < static["rollout_iou_never"]["mean"] < 1.0  # the plate moves, so holding S_0 loses overlap
     alpha = json.loads((runs[0].output / "alpha_shapes" / "test_metrics.json").read_text())
     generated = json.loads((runs[0].test_dir / GENERATED_MESH_FILE).read_text())
     for metrics in (alpha, generated):
@@ -59,7 +62,7 @@ def test_two_seed_sweep_runs_skips_and_resumes(tiny_data_dir, tmp_path):
     summary = summarize(sweep, log=messages.append).read_text()
     assert "2 of 2 runs finished" in summary and "| mgn |" in summary
     assert "## Rollout IoU from a mesh generated from the first point cloud" in summary
-    assert "| alpha_shapes |" in summary and "generated_mesh_iou.png" in summary
+    assert "| alpha_shapes |" in summary and "| static |" in summary and "generated_mesh_iou.png" in summary
     assert "| mgn | 1 | last.ckpt | 2 / 1 | 2 / 1 |" in summary  # no validation ran: last; 2 steps, 1 epoch done
     csv_text = (runs[0].output / "summary.csv").read_text()
     assert "mgn,rollout_mse_never," in csv_text and "mgn,generated_mesh_iou_never," in csv_text

@@ -11,6 +11,11 @@ trajectories), so `summarize` tabulates them with the learned models.
                              (`ggns.baselines.alpha_shapes`), reported as generated_mesh_iou_k1
                              (a cloud every step, no initial mesh) and as rollout_iou_k1;
                              <output>/alpha_shapes/test_metrics.json
+    static                   a reference row, not a paper baseline: the mesh held at its initial
+                             state S_0 for the whole trajectory, scored as rollout_mse_never and
+                             rollout_iou_never; it shows how much motion a model has to predict
+                             (a learned simulator above it has learned nothing useful);
+                             <output>/static/test_metrics.json
 
 Configured by the sweep file's optional `baselines` section (2D datasets only):
 
@@ -19,6 +24,7 @@ Configured by the sweep file's optional `baselines` section (2D datasets only):
       data_dir: null            # overrides the preset's directory
       max_trajectories: 9       # the first n test trajectories, as the runs' test (null: all)
       alpha_shapes: true
+      static: true
       initial_mesh: [ggns, mgn] # sweep models rolled out from the generated mesh, each under its
                                 # own evaluation schedules (the model's `eval_schedules`)
 
@@ -33,6 +39,8 @@ import numpy as np
 import torch
 
 ALPHA_SHAPES = "alpha_shapes"
+STATIC = "static"
+ROWS = (ALPHA_SHAPES, STATIC)  # baseline rows of their own, <output>/<row>/test_metrics.json
 GENERATED_MESH_FILE = "generated_mesh_metrics.json"
 
 
@@ -63,6 +71,20 @@ def alpha_shapes_metrics(trajectories) -> dict[str, dict[str, float]]:
 
     per_traj = [float(trajectory_alpha_iou(traj)[1:].mean()) for traj in trajectories]
     return _summary({"generated_mesh_iou_k1": per_traj, "rollout_iou_k1": per_traj})
+
+
+def static_metrics(trajectories) -> dict[str, dict[str, float]]:
+    """The mesh held at S_0 for every step, scored like a rollout without point clouds."""
+    from ..evaluation.metrics import batch_iou, rollout_mse
+
+    mse, iou = [], []
+    for traj in trajectories:
+        true = torch.as_tensor(np.asarray(traj.positions, dtype=np.float64))[None]  # [1, T, N, d]
+        held = true[:, :1].expand_as(true)
+        mse.append(rollout_mse(held, true)[0])
+        if traj.dim == 2:
+            iou.append(batch_iou(held, true, traj.cells)[0, 1:].mean().item())
+    return _summary({"rollout_mse_never": mse, **({"rollout_iou_never": iou} if iou else {})})
 
 
 def generated_mesh_metrics(model, trajectories, schedules=None) -> dict[str, dict[str, float]]:
@@ -99,7 +121,7 @@ def _test_trajectories(spec: dict):
 def baseline_spec(sweep: dict) -> dict:
     """The sweep's `baselines` section, checked ({} when absent)."""
     spec = sweep.get("baselines") or {}
-    unknown = set(spec) - {"dataset", "data_dir", "max_trajectories", "alpha_shapes", "initial_mesh"}
+    unknown = set(spec) - {"dataset", "data_dir", "max_trajectories", "alpha_shapes", "static", "initial_mesh"}
     if unknown:
         raise ValueError(f"sweep baselines: unknown keys {sorted(unknown)}")
     models = spec.get("initial_mesh") or []
@@ -114,22 +136,21 @@ def baseline_spec(sweep: dict) -> dict:
 
 def run_baselines(sweep: dict, log=print) -> list[Path]:
     """Compute the missing baseline results of the sweep (see the module docstring): Alpha Shapes
-    once, and the generated-mesh rollouts for every finished run of the `initial_mesh` models.
+    and the static reference once, and the generated-mesh rollouts for every finished run of the `initial_mesh` models.
     Returns the files written."""
     from ..models.simulators import load_simulator
     from .sweep import runs_of
 
     spec = baseline_spec(sweep)
-    if not spec.get("alpha_shapes") and not spec["initial_mesh"]:
-        return []
     written: list[Path] = []
     trajectories = None
-    alpha_path = Path(sweep["output"]) / ALPHA_SHAPES / "test_metrics.json"
-    if spec.get("alpha_shapes") and not alpha_path.is_file():
-        trajectories = _test_trajectories(spec)
-        log(f"baseline alpha shapes on {len(trajectories)} test trajectories")
-        _write_json(alpha_path, alpha_shapes_metrics(trajectories))
-        written.append(alpha_path)
+    for row, compute in ((ALPHA_SHAPES, alpha_shapes_metrics), (STATIC, static_metrics)):
+        path = Path(sweep["output"]) / row / "test_metrics.json"
+        if spec.get(row) and not path.is_file():
+            trajectories = trajectories if trajectories is not None else _test_trajectories(spec)
+            log(f"baseline {row} on {len(trajectories)} test trajectories")
+            _write_json(path, compute(trajectories))
+            written.append(path)
     for run in runs_of(sweep):
         path = run.test_dir / GENERATED_MESH_FILE
         if run.model not in spec["initial_mesh"] or not run.finished or path.is_file():

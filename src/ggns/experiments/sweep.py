@@ -28,7 +28,8 @@ from omegaconf import OmegaConf
 
 from ..config import resolve_preset
 from .aggregate import RunResult, aggregate, load_run, normalized_benefit, to_csv, to_markdown
-from .baselines import ALPHA_SHAPES, GENERATED_MESH_FILE
+from .baselines import GENERATED_MESH_FILE
+from .baselines import ROWS as BASELINE_ROWS
 from .findings import check_findings, findings_markdown
 from .figures import write_figures
 
@@ -218,9 +219,10 @@ def summarize(sweep: dict, log=print) -> Path:
         raise FileNotFoundError(f"{sweep['output']}: no finished run to aggregate")
     output = Path(sweep["output"])
     results = [_run_result(r) for r in finished]
-    alpha = output / ALPHA_SHAPES / "test_metrics.json"
-    if alpha.is_file():
-        results.append(load_run(alpha, ALPHA_SHAPES, 0))
+    for row in BASELINE_ROWS:
+        path = output / row / "test_metrics.json"
+        if path.is_file():
+            results.append(load_run(path, row, 0))
     table = aggregate(results)
     to_csv(table, output / "summary.csv")
     lines = ["# Sweep summary", "", f"{len(finished)} of {len(runs_of(sweep))} runs finished; mean ± std over seeds "

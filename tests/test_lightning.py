@@ -442,7 +442,8 @@ def events(log_dir: Path):
 
 
 def checkpoint_callback_state(ckpt: dict) -> dict:
-    (state,) = [v for k, v in ckpt["callbacks"].items() if k.startswith("ModelCheckpoint")]
+    """The state of the ModelCheckpoint that monitors the validation rollout."""
+    (state,) = [v for k, v in ckpt["callbacks"].items() if k.startswith("ModelCheckpoint") and v["monitor"]]
     return state
 
 
@@ -520,6 +521,18 @@ def test_cli_resume_continues_without_new_statistics(ggns_fit, cli_data):
                                                                                      after["state_dict"][k])]
     assert changed  # the weights did train
     assert len(events(ggns_fit / "ggns" / "resume").Scalars("val/rollout_mse")) == 1  # epoch 2 only
+
+
+def test_last_checkpoint_is_the_newest_state_between_validations(cli_data, tmp_path):
+    """Validation every 2nd epoch of 3: the best checkpoint is epoch 1's, while last.ckpt must hold
+    the end of epoch 2, which no validation followed (a resume continues from there). Lightning's
+    own save_last only copies a newly saved best checkpoint and would stop at epoch 1."""
+    run_cli(["fit", *cli_args("mgn", cli_data, tmp_path, "fit", "--trainer.max_epochs", "3",
+                           "--trainer.check_val_every_n_epoch", "2", "--trainer.limit_val_batches", "1")])
+    checkpoints = tmp_path / "mgn" / "fit" / "checkpoints"
+    assert [p.name for p in checkpoints.glob("best-*.ckpt")] == ["best-epoch=1.ckpt"]
+    last = torch.load(checkpoints / "last.ckpt", weights_only=False)
+    assert (last["epoch"], last["global_step"]) == (2, 6)  # 3 epochs x 2 batches
 
 
 def test_cli_mgn_fit_and_test(cli_data, tmp_path):

@@ -63,7 +63,7 @@ def test_two_seed_sweep_runs_skips_and_resumes(tiny_data_dir, tmp_path):
     assert "2 of 2 runs finished" in summary and "| mgn |" in summary
     assert "## Rollout IoU from a mesh generated from the first point cloud" in summary
     assert "| alpha_shapes |" in summary and "| static |" in summary and "generated_mesh_iou.png" in summary
-    assert "| mgn | 1 | last.ckpt | 2 / 1 | 2 / 1 |" in summary  # no validation ran: last; 2 steps, 1 epoch done
+    assert "| mgn | 1 | last.ckpt | 2 / 0 | 0 |" in summary  # no validation ran: last.ckpt, 2 steps in epoch 0
     csv_text = (runs[0].output / "summary.csv").read_text()
     assert "mgn,rollout_mse_never," in csv_text and "mgn,generated_mesh_iou_never," in csv_text
     assert "alpha_shapes,generated_mesh_iou_k1," in csv_text

@@ -189,24 +189,35 @@ def _sections(table) -> list[str]:
     return lines
 
 
+def _steps_logged(directory: Path) -> int | None:
+    """The largest step of any scalar in the TensorBoard event files of a fit (its training length,
+    to within `log_every_n_steps`; validation is logged at the step it ran), or None."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    steps = []
+    for path in directory.glob("events.out.tfevents.*"):
+        events = EventAccumulator(str(path), size_guidance={"scalars": 0, "images": 1})
+        events.Reload()
+        steps += [e.step for tag in events.Tags()["scalars"] for e in events.Scalars(tag)]
+    return max(steps) if steps else None
+
+
 def _training_markdown(runs: list[Run]) -> str:
-    """Per run: optimizer steps and epochs of the tested checkpoint and of the fit's last one."""
+    """Per run: optimizer steps and epoch of the tested checkpoint, and the steps the fit logged."""
     import torch
 
-    def progress(path: Path) -> str:
-        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
-        return f"{checkpoint.get('global_step', '?')} / {checkpoint.get('epoch', '?')}"
-
-    lines = ["| model | seed | tested checkpoint | its steps / epoch | last steps / epoch |", "|---|---|---|---|---|"]
+    lines = ["| model | seed | tested checkpoint | its steps / epoch | largest logged step of the fit |", "|---|---|---|---|---|"]
     for run in runs:
+        logged = _steps_logged(run.fit_dir)
+        logged = "-" if logged is None else str(logged)
         try:
             tested = run.checkpoint()
         except FileNotFoundError:  # checkpoints removed after testing
-            lines.append(f"| {run.model} | {run.seed} | (removed) | - | - |")
+            lines.append(f"| {run.model} | {run.seed} | (removed) | - | {logged} |")
             continue
-        last = run.fit_dir / "checkpoints" / "last.ckpt"
-        lines.append(f"| {run.model} | {run.seed} | {tested.name} | {progress(tested)} | "
-                     f"{progress(last) if last.is_file() else '-'} |")
+        checkpoint = torch.load(tested, map_location="cpu", weights_only=False)
+        lines.append(f"| {run.model} | {run.seed} | {tested.name} | {checkpoint.get('global_step', '?')} / "
+                     f"{checkpoint.get('epoch', '?')} | {logged} |")
     return "\n".join(lines) + "\n"
 
 

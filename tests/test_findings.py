@@ -49,6 +49,14 @@ def test_each_finding_can_fail():
     assert finding.holds is False and "k = [5]" in finding.evidence
 
 
+def test_no_benefit_to_normalize_when_ggns_k1_is_worse_than_mgn():
+    t = paper_like()
+    for k, v in ((1, 6e-3), (2, 7e-3), (5, 8e-3), (10, 9e-3)):  # benefit(k) > 1 and rising: meaningless
+        t["ggns"][f"rollout_mse_k{k}"] = stat(v)
+    finding = check_findings(t)[3]
+    assert finding.holds is False and "no benefit to normalize" in finding.evidence
+
+
 def test_lstm_inside_the_seed_spread_is_not_better():
     t = paper_like()
     t["ggns_lstm"]["rollout_mse_k2"] = stat(0.95 * 2e-4, 1e-6)  # 5 % lower, GGNS std is 10 %

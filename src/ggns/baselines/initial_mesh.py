@@ -129,14 +129,26 @@ def mesh_iou(pred_nodes, pred_cells, true_nodes, true_cells) -> float:
     return float(inter / union)
 
 
-def initial_mesh_rollout_iou(model, traj: Trajectory, schedule, target_nodes: int | None = None,
-                             alpha: float | None = None, fixed_tolerance: float | None = None) -> np.ndarray:
-    """Roll out `model` (a `GraphSimulator`) from the mesh generated from the first point cloud
-    of `traj` under `schedule` (a Schedule or e.g. "every:5") and return the IoU with the true
-    mesh of every step: float64 [T]; index 0 scores the generated mesh itself."""
+def initial_mesh_rollout_ious(model, trajectories: list[Trajectory], schedule, generated: list[Trajectory] | None = None,
+                              target_nodes: int | None = None, alpha: float | None = None,
+                              fixed_tolerance: float | None = None) -> list[np.ndarray]:
+    """Roll out `model` (a `GraphSimulator`) from the meshes generated from the first point cloud
+    of each trajectory (one batch) under `schedule` (a Schedule or e.g. "every:5") and return,
+    per trajectory, the IoU with the true mesh of every step: float64 [T]; index 0 scores the
+    generated mesh itself. `generated`: the `generated_trajectory`s, when already made."""
+    from ggns.evaluation.evaluate import split_trajectories
     from ggns.graphs.state import TrajectoryBatch
 
-    gen = generated_trajectory(traj, target_nodes, alpha, fixed_tolerance)
-    batch = TrajectoryBatch.from_trajectories([gen], device=model.device, dtype=model.dtype)
-    pred = model.rollout(batch, schedule).detach().cpu().to(torch.float64).numpy()  # [T, N', 2]
-    return np.array([mesh_iou(pred[t], gen.cells, traj.positions[t], traj.cells) for t in range(traj.num_steps)])
+    if generated is None:
+        generated = [generated_trajectory(t, target_nodes, alpha, fixed_tolerance) for t in trajectories]
+    batch = TrajectoryBatch.from_trajectories(generated, device=model.device, dtype=model.dtype)
+    preds = split_trajectories(model.rollout(batch, schedule), batch)  # [1, T, N', d] each, CPU
+    return [np.array([mesh_iou(p[0, t].to(torch.float64).numpy(), gen.cells, traj.positions[t], traj.cells)
+                      for t in range(traj.num_steps)])
+            for p, gen, traj in zip(preds, generated, trajectories)]
+
+
+def initial_mesh_rollout_iou(model, traj: Trajectory, schedule, target_nodes: int | None = None,
+                             alpha: float | None = None, fixed_tolerance: float | None = None) -> np.ndarray:
+    """`initial_mesh_rollout_ious` of one trajectory: float64 [T]."""
+    return initial_mesh_rollout_ious(model, [traj], schedule, None, target_nodes, alpha, fixed_tolerance)[0]

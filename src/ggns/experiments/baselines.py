@@ -38,6 +38,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..evaluation.evaluate import MetricTable
+
 ALPHA_SHAPES = "alpha_shapes"
 STATIC = "static"
 ROWS = (ALPHA_SHAPES, STATIC)  # baseline rows of their own, <output>/<row>/test_metrics.json
@@ -45,15 +47,10 @@ GENERATED_MESH_FILE = "generated_mesh_metrics.json"
 
 
 def _summary(values: dict[str, list[float]]) -> dict[str, dict[str, float]]:
-    """{name: per-trajectory values} -> {name: {"mean", "std" (population, over trajectories), "count"}},
-    the format of `MetricTable.summary`. A non-finite value raises ValueError naming the metric."""
-    out = {}
-    for name, xs in values.items():
-        v = np.asarray(xs, dtype=np.float64)
-        if not np.isfinite(v).all():
-            raise ValueError(f"baseline metric {name!r} is not finite for trajectories {np.flatnonzero(~np.isfinite(v)).tolist()}")
-        out[name] = {"mean": float(v.mean()), "std": float(v.std()), "count": int(v.size)}
-    return out
+    """{name: per-trajectory values} -> the runs' format, {name: {"mean", "std", "count"}}."""
+    table = MetricTable()
+    table.add({name: torch.tensor(xs, dtype=torch.float64) for name, xs in values.items()})
+    return table.summary()
 
 
 def _write_json(path: Path, data: dict) -> None:
@@ -90,23 +87,16 @@ def static_metrics(trajectories) -> dict[str, dict[str, float]]:
 def generated_mesh_metrics(model, trajectories, schedules=None) -> dict[str, dict[str, float]]:
     """IoU of `model`'s rollouts from meshes generated from each trajectory's first point cloud,
     under each schedule (default: the model's `eval_schedules`), batched over trajectories."""
-    from ..baselines.initial_mesh import generated_trajectory, mesh_iou
-    from ..evaluation.evaluate import schedule_key, split_trajectories
+    from ..baselines.initial_mesh import generated_trajectory, initial_mesh_rollout_ious
+    from ..evaluation.evaluate import schedule_key
     from ..evaluation.schedules import parse_schedule
-    from ..graphs.state import TrajectoryBatch
 
-    schedules = list(model.hparams.eval_schedules if schedules is None else schedules)
     generated = [generated_trajectory(traj) for traj in trajectories]
-    batch = TrajectoryBatch.from_trajectories(generated, device=model.device, dtype=model.dtype)
     values: dict[str, list[float]] = {}
-    for text in schedules:
+    for text in (model.hparams.eval_schedules if schedules is None else schedules):
         schedule = parse_schedule(text) if isinstance(text, str) else text
-        pred = split_trajectories(model.rollout(batch, schedule), batch)
-        name = f"generated_mesh_iou_{schedule_key(schedule)}"
-        values[name] = [
-            float(np.mean([mesh_iou(p[0, t].double().numpy(), gen.cells, traj.positions[t], traj.cells)
-                           for t in range(1, traj.num_steps)]))
-            for p, gen, traj in zip(pred, generated, trajectories)]
+        ious = initial_mesh_rollout_ious(model, trajectories, schedule, generated)
+        values[f"generated_mesh_iou_{schedule_key(schedule)}"] = [float(iou[1:].mean()) for iou in ious]
     return _summary(values)
 
 
@@ -157,8 +147,6 @@ def run_baselines(sweep: dict, log=print) -> list[Path]:
             continue
         trajectories = trajectories if trajectories is not None else _test_trajectories(spec)
         log(f"baseline initial mesh generation: {run.model} seed {run.seed}")
-        model = load_simulator(run.checkpoint(), map_location="cpu")
-        with torch.no_grad():
-            _write_json(path, generated_mesh_metrics(model, trajectories))
+        _write_json(path, generated_mesh_metrics(load_simulator(run.checkpoint(), map_location="cpu"), trajectories))
         written.append(path)
     return written

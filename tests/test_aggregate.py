@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from ggns.experiments import RunResult, aggregate, load_run, normalized_benefit, to_csv, to_markdown
+from ggns.experiments import NoBenefitError, RunResult, aggregate, load_run, normalized_benefit, to_csv, to_markdown
 
 
 def _runs():
@@ -52,8 +52,17 @@ def test_normalized_benefit_errors():
     with pytest.raises(ValueError, match="rollout_mse_k3"):
         normalized_benefit(table, ks=(1, 3))
     flat = aggregate([RunResult("ggns", 0, {"rollout_mse_k1": 5.0}), RunResult("mgn", 0, {"rollout_mse_never": 5.0})])
-    with pytest.raises(ValueError, match="undefined"):
+    with pytest.raises(NoBenefitError, match="undefined"):
         normalized_benefit(flat)
+
+
+def test_no_normalized_benefit_when_ggns_k1_is_worse_than_mgn():
+    # the ratio would be (10 - k) / (10 - 12): 1 at k = 1, then above 1 and rising, which means nothing
+    worse = aggregate([RunResult("ggns", 0, {"rollout_mse_k1": 12.0, "rollout_mse_k2": 13.0}),
+                       RunResult("mgn", 0, {"rollout_mse_never": 10.0})])
+    with pytest.raises(NoBenefitError, match="rollout_mse_k1 12 is not below mgn rollout_mse_never 10"):
+        normalized_benefit(worse, ks=(1, 2))
+    assert issubclass(NoBenefitError, ValueError)
 
 
 def test_markdown_cells():

@@ -70,6 +70,13 @@ def test_write_figures_skips_benefit_when_a_k_is_missing(tmp_path):
     assert names == {"rollout_mse.png", "m_plus_10.png", "rollout_iou.png"}
 
 
+def test_write_figures_skips_benefit_when_ggns_k1_is_not_below_mgn(tmp_path):
+    table = make_table()
+    table["ggns"]["rollout_mse_k1"]["mean"] = table["mgn"]["rollout_mse_never"]["mean"] * 2
+    names = {p.name for p in write_figures(table, tmp_path)}
+    assert "normalized_benefit.png" not in names and "rollout_mse.png" in names
+
+
 def test_write_figures_one_seed(tmp_path):
     table = make_table(std=math.nan, seeds=1)
     assert len(write_figures(table, tmp_path)) == 4

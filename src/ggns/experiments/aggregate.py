@@ -92,6 +92,10 @@ def _mean(table: Table, model: str, metric: str) -> float:
     return table[model][metric]["mean"]
 
 
+class NoBenefitError(ValueError):
+    """GGNS with a point cloud every step is not below MGN: there is no benefit to normalize."""
+
+
 def normalized_benefit(table: Table, ggns_model: str = "ggns", mgn_model: str = "mgn",
                        ks: Sequence[int] = (1, 2, 5, 10)) -> dict[int, float]:
     """Normalized benefit of point clouds every k steps (our reading of the paper):
@@ -100,16 +104,17 @@ def normalized_benefit(table: Table, ggns_model: str = "ggns", mgn_model: str = 
 
     with MSE_MGN the seed-mean `rollout_mse_never` of `mgn_model` and MSE_GGNS(k) the
     seed-mean `rollout_mse_k<k>` of `ggns_model`. So benefit(1) = 1 and a GGNS no better
-    than MGN scores 0 (negative if worse). ValueError when a model or metric is missing or
-    the denominator is 0.
+    than MGN scores 0 (negative if worse). ValueError when a model or metric is missing;
+    NoBenefitError (a ValueError) when MSE_GGNS(1) is not below MSE_MGN, where the
+    denominator is zero or negative and the ratios would mean nothing (a "benefit" above 1
+    that rises with k).
     """
     mgn = _mean(table, mgn_model, "rollout_mse_never")
     k1 = _mean(table, ggns_model, "rollout_mse_k1")
-    denominator = mgn - k1
-    if denominator == 0:
-        raise ValueError(f"normalized benefit undefined: {mgn_model!r} rollout_mse_never equals "
-                         f"{ggns_model!r} rollout_mse_k1 ({mgn})")
-    return {k: (mgn - _mean(table, ggns_model, f"rollout_mse_k{k}")) / denominator for k in ks}
+    if not k1 < mgn:
+        raise NoBenefitError(f"normalized benefit undefined, no benefit to normalize: {ggns_model} "
+                             f"rollout_mse_k1 {k1:.3g} is not below {mgn_model} rollout_mse_never {mgn:.3g}")
+    return {k: (mgn - _mean(table, ggns_model, f"rollout_mse_k{k}")) / (mgn - k1) for k in ks}
 
 
 def _metric_order(table: Table) -> list[str]:

@@ -140,7 +140,7 @@ def write_figures(table: Table, directory: str | Path) -> list[Path]:
         try:
             normalized_benefit(table)
         except ValueError:
-            pass  # a k metric missing or a zero denominator: no curve
+            pass  # a k metric missing, or GGNS k=1 not below MGN (nothing to normalize): no curve
         else:
             paths.append(benefit_curve(table, directory / "normalized_benefit.png"))
     return paths

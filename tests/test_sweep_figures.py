@@ -73,8 +73,10 @@ def test_write_figures_skips_benefit_when_a_k_is_missing(tmp_path):
 def test_write_figures_skips_benefit_when_ggns_k1_is_not_below_mgn(tmp_path):
     table = make_table()
     table["ggns"]["rollout_mse_k1"]["mean"] = table["mgn"]["rollout_mse_never"]["mean"] * 2
+    (tmp_path / "normalized_benefit.png").write_bytes(b"stale")  # from an earlier aggregation
     names = {p.name for p in write_figures(table, tmp_path)}
     assert "normalized_benefit.png" not in names and "rollout_mse.png" in names
+    assert not (tmp_path / "normalized_benefit.png").exists()
 
 
 def test_write_figures_one_seed(tmp_path):

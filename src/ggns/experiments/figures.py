@@ -123,9 +123,13 @@ def benefit_curve(table: Table, path: str | Path, ggns_model: str = "ggns", mgn_
                    title="Normalized benefit of point clouds (1 at k = 1, 0 at MGN)")
 
 
+FIGURES = ("rollout_mse.png", "m_plus_10.png", "rollout_iou.png", "generated_mesh_iou.png", "normalized_benefit.png")
+
+
 def write_figures(table: Table, directory: str | Path) -> list[Path]:
     """All figures the table supports, into `directory`: rollout_mse.png, m_plus_10.png,
-    rollout_iou.png, generated_mesh_iou.png, normalized_benefit.png (each skipped when its metrics are missing)."""
+    rollout_iou.png, generated_mesh_iou.png, normalized_benefit.png (each skipped when its metrics are missing;
+    a skipped figure left there by an earlier call is removed, so the directory never shows a stale one)."""
     directory = Path(directory)
     paths = []
     if _has(table, "rollout_mse_"):
@@ -143,4 +147,7 @@ def write_figures(table: Table, directory: str | Path) -> list[Path]:
             pass  # a k metric missing, or GGNS k=1 not below MGN (nothing to normalize): no curve
         else:
             paths.append(benefit_curve(table, directory / "normalized_benefit.png"))
+    for name in FIGURES:
+        if directory / name not in paths:
+            (directory / name).unlink(missing_ok=True)
     return paths

@@ -52,7 +52,7 @@ def test_normalized_benefit_errors():
     with pytest.raises(ValueError, match="rollout_mse_k3"):
         normalized_benefit(table, ks=(1, 3))
     flat = aggregate([RunResult("ggns", 0, {"rollout_mse_k1": 5.0}), RunResult("mgn", 0, {"rollout_mse_never": 5.0})])
-    with pytest.raises(NoBenefitError, match="undefined"):
+    with pytest.raises(NoBenefitError, match="no benefit to normalize"):
         normalized_benefit(flat)
 
 

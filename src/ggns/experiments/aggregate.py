@@ -112,7 +112,7 @@ def normalized_benefit(table: Table, ggns_model: str = "ggns", mgn_model: str = 
     mgn = _mean(table, mgn_model, "rollout_mse_never")
     k1 = _mean(table, ggns_model, "rollout_mse_k1")
     if not k1 < mgn:
-        raise NoBenefitError(f"normalized benefit undefined, no benefit to normalize: {ggns_model} "
+        raise NoBenefitError(f"no benefit to normalize: {ggns_model} "
                              f"rollout_mse_k1 {k1:.3g} is not below {mgn_model} rollout_mse_never {mgn:.3g}")
     return {k: (mgn - _mean(table, ggns_model, f"rollout_mse_k{k}")) / (mgn - k1) for k in ks}
 

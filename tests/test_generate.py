@@ -54,7 +54,9 @@ def test_splits_are_balanced_and_described(tiny_dataset):
     t = trajs[0]
     assert t.positions.shape == (8, 81, 2) and t.edges.shape == (208, 2)  # 416 directed mesh edges
     assert t.collider_positions.shape == (8, 57, 2)
-    assert np.abs(t.positions).max() <= 1 and np.abs(t.collider_positions).max() <= 1
+    assert np.abs(t.rest_positions).max() <= 1  # the plate fills [-1, 1]^2 at rest; the collider starts above it
+    assert t.collider_positions[0, :, 1].min() > t.rest_positions[:, 1].max()
+    assert t.params["plane"] == "stress"
     assert t.fixed.sum() == 9
 
 

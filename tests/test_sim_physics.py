@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from ggns.config import load_config
-from ggns.scenes.plate import collider_path, make_trajectory, plate_mesh, sample_spec
+from ggns.scenes.plate import collider_path, make_trajectory, plate_material, plate_mesh, sample_spec
 from ggns.sim.fem import ElasticBody
 from ggns.sim.material import Material
 from ggns.sim.run import simulate
@@ -16,10 +16,11 @@ from ggns.sim.solver import SolverConfig, Simulator
 from conftest import box_mesh
 
 
-@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("dim, plane", [(2, "strain"), (2, "stress"), (3, "strain")])
 @pytest.mark.parametrize("nu", [-0.9, 0.0, 0.49])
-def test_uniaxial_compression_gives_the_linear_elastic_strain_ratio(dim, nu):
-    """A free block compressed by 1 % between frictionless plates (roller conditions)."""
+def test_uniaxial_compression_gives_the_linear_elastic_strain_ratio(dim, plane, nu):
+    """A free block compressed by 1 % between frictionless plates (roller conditions): the
+    lateral strain is -nu/(1-nu) x the axial one in plane strain, -nu in plane stress and 3D."""
     X, cells = box_mesh(dim, n=5)
     axial = dim - 1  # compress along the last axis
     bottom, top = X[:, axial] == 0.0, X[:, axial] == 1.0
@@ -30,11 +31,12 @@ def test_uniaxial_compression_gives_the_linear_elastic_strain_ratio(dim, nu):
         fixed[(X[:, 0] == 1.0) & (X[:, 1] == 0.0) & bottom, 1] = True
     x0 = X.copy()
     x0[top, axial] -= 0.01
-    sim = Simulator(ElasticBody(torch.tensor(X), torch.tensor(cells), Material(5000.0, nu)), torch.tensor(fixed), SolverConfig(dt=1.0))
+    material = Material(5000.0, nu, plane=plane)
+    sim = Simulator(ElasticBody(torch.tensor(X), torch.tensor(cells), material), torch.tensor(fixed), SolverConfig(dt=1.0))
     x = sim.static_equilibrium(torch.tensor(x0)).numpy()
     eps_axial = -0.01
     eps_lateral = (x[X[:, 0] == 1.0, 0] - x[X[:, 0] == 0.0, 0]).mean() - 1.0
-    expected = -nu / (1 - nu) if dim == 2 else -nu  # plane strain / 3D
+    expected = -nu / (1 - nu) if (dim, plane) == (2, "strain") else -nu
     ratio = eps_lateral / eps_axial
     assert ratio == pytest.approx(expected, rel=0.02, abs=1e-3)
     if nu < 0:
@@ -64,7 +66,7 @@ def _plate_final_state(substeps: int) -> np.ndarray:
     spec = sample_spec(scene, 4, 0.0, np.random.default_rng(0))
     rest, cells, fixed = plate_mesh(scene, 4)
     path, faces = collider_path(scene, spec)
-    material = Material(scene["youngs_modulus"], 0.0, scene["density"], scene["rayleigh_mass"], scene["rayleigh_stiffness"])
+    material = plate_material(scene, 0.0)
     solver = SolverConfig(dt=scene["frame_dt"] / substeps, newton_tolerance=1e-10, contact_tolerance=1e-6)
     positions, _ = simulate(rest, cells, fixed, material, solver, [(path, faces)], substeps)
     return positions[-1]
@@ -86,6 +88,7 @@ def test_halving_the_time_step_converges():
         ({"youngs_modulus": 0.0, "poissons_ratio": 0.3}, "Young"),
         ({"youngs_modulus": float("nan"), "poissons_ratio": 0.3}, "Young"),
         ({"youngs_modulus": 5000.0, "poissons_ratio": 0.3, "density": -1.0}, "density"),
+        ({"youngs_modulus": 5000.0, "poissons_ratio": 0.3, "plane": "plain"}, "plane"),
     ],
 )
 def test_invalid_material_is_refused(kwargs, message):

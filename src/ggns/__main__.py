@@ -3,6 +3,7 @@
     fit, validate, test, predict
               the Lightning CLI for the simulators (`python -m ggns fit --help`; see ggns.cli)
     generate  simulate and observe dataset splits into HDF5 files
+    geometry  measure a generated dataset's scale against the paper's radii, noise and point count
     sweep     multi-seed sweeps of model configs
     bench     benchmarks (`bench sim`: simulator and dataset generation speed;
               `bench models`: training and rollout throughput of the learned simulators;
@@ -30,6 +31,17 @@ def _generate(args: argparse.Namespace) -> None:
     config = load_config(args.config, overrides)
     for path in generate(config, args.split, overwrite=args.overwrite):
         print(path)
+
+
+def _geometry(args: argparse.Namespace) -> None:
+    from .data.module import SimulationDataModule
+    from .graphs.scale import geometry_report
+
+    data = SimulationDataModule(args.dataset, generate_missing=False)
+    trajectories = data.trajectories(args.split)[: args.trajectories]
+    table, ok = geometry_report(trajectories, f"{args.dataset} {data.path(args.split)}", args.targets, args.stride)
+    print(table)
+    print("all targets met" if ok else "some targets are not met (OUT OF RANGE above)")
 
 
 def _bench(args: argparse.Namespace) -> None:
@@ -104,6 +116,14 @@ def main(argv: list[str] | None = None) -> None:
     gen.add_argument("--overwrite", action="store_true", help="replace existing split files")
     gen.add_argument("overrides", nargs="*", help="config overrides as key=value, e.g. scene.num_steps=20")
     gen.set_defaults(run=_generate)
+
+    geo = sub.add_parser("geometry", help="measure a dataset's scale (points, neighbours, edges, motion) against targets")
+    geo.add_argument("--dataset", default="plate_small", help="data preset whose generated split is measured")
+    geo.add_argument("--split", default="train", choices=["train", "val", "test"])
+    geo.add_argument("--trajectories", type=int, default=27, help="first n trajectories of the split")
+    geo.add_argument("--stride", type=int, default=5, help="measure every n-th step")
+    geo.add_argument("--targets", default="plate", help="targets file: conf/geometry/<name>.yaml or a YAML path")
+    geo.set_defaults(run=_geometry)
 
     bench = sub.add_parser("bench", help="benchmarks")
     bench.add_argument("what", choices=["sim", "models", "tradeoff"],

@@ -8,7 +8,9 @@ Batches are `TrajectoryBatch`es (moved to the model's device by Lightning throug
 
 The dataset is named by a data preset (conf/data/<name>.yaml or a YAML path): its `output`
 directory holds <split>.h5. Missing splits are generated from the preset in `prepare_data`
-when `generate_missing` is set; otherwise a FileNotFoundError says how to generate them.
+when `generate_missing` is set; otherwise a FileNotFoundError says how to generate them. A
+split file generated with another scene, solver or sensor configuration than the preset's is
+refused (`schema.read_trajectories`), never mixed in silently.
 """
 from __future__ import annotations
 
@@ -110,7 +112,7 @@ class SimulationDataModule(pl.LightningDataModule):
                 raise FileNotFoundError(
                     f"{path}: split file missing; generate it with `python -m ggns generate --config "
                     f"{self.hparams.dataset} --output {self.data_dir}` (or set data.generate_missing=true)")
-            trajs = read_trajectories(path)
+            trajs = read_trajectories(path, expected_config=self.config)
             if split != "train" and self.max_eval_trajectories is not None:
                 trajs = trajs[: self.max_eval_trajectories]
             if not trajs:

@@ -354,7 +354,48 @@ def _python_scalar(value):
     return value.item() if isinstance(value, np.generic) else value
 
 
-def read_trajectories(path: str | os.PathLike) -> list[Trajectory]:
-    """All trajectories of a split file, in order."""
+# The parts of a generator configuration that define what a trajectory is (the split sizes, seed,
+# output directory and worker count only say how many were made, where and how fast).
+DEFINING_SECTIONS = ("scene", "solver", "sensor")
+
+
+def config_differences(stored: dict, expected: dict, sections=DEFINING_SECTIONS) -> list[str]:
+    """Dotted keys under `sections` whose values differ between two generator configurations
+    (a key present on one side only differs too)."""
+    def flat(d, prefix=""):
+        if not isinstance(d, dict):
+            return {prefix[:-1]: d}
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}."))
+        return out
+
+    a = flat({k: stored.get(k) for k in sections})
+    b = flat({k: expected.get(k) for k in sections})
+    return sorted(k for k in a.keys() | b.keys() if a.get(k, "<absent>") != b.get(k, "<absent>"))
+
+
+def read_trajectories(path: str | os.PathLike, expected_config: dict | None = None) -> list[Trajectory]:
+    """All trajectories of a split file, in order. With `expected_config` (a generator config,
+    e.g. a data preset), a file generated with another scene, solver or sensor is refused with a
+    DatasetError naming the differing keys, so files of an earlier scene never mix silently
+    with a preset that has changed."""
     with SplitReader(path) as reader:
+        if expected_config is not None:
+            differ = config_differences(reader.generator_config, expected_config)
+            if differ:
+                shown = ", ".join(f"{k} (file: {_lookup(reader.generator_config, k)!r}, preset: "
+                                  f"{_lookup(expected_config, k)!r})" for k in differ[:6])
+                raise reader._error(
+                    f"generated with another configuration than the preset asks for: {shown}"
+                    f"{' and more' if len(differ) > 6 else ''}. Regenerate it (python -m ggns generate --config "
+                    f"<preset> --overwrite) or point the data module at the matching preset")
         return list(reader)
+
+
+def _lookup(config: dict, dotted: str):
+    for key in dotted.split("."):
+        if not isinstance(config, dict) or key not in config:
+            return "<absent>"
+        config = config[key]
+    return config

@@ -39,7 +39,9 @@ def trapezoid(scene: dict, shape_id: int) -> tuple[float, float, float, float]:
 
 def plate_mesh(scene: dict, shape_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Structured triangle mesh of a trapezoid: rest positions [n*n, 2], cells [2(n-1)^2, 3]
-    (counter-clockwise, alternating diagonals), fixed mask [n*n] (the bottom row)."""
+    (counter-clockwise), fixed mask [n*n] (the bottom row). Every quad is split along the same
+    diagonal, bottom-right to top-left (scene.diagonals "uniform", as the paper's plate), or
+    along alternating diagonals ("alternating", the earlier scene)."""
     n = int(scene["grid_nodes"])
     bl, br, tl, tr = trapezoid(scene, shape_id)
     s, r = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="xy")  # s along x, r along y
@@ -50,7 +52,13 @@ def plate_mesh(scene: dict, shape_id: int) -> tuple[np.ndarray, np.ndarray, np.n
     j, i = np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="ij")  # j row, i column
     a, b = j * n + i, j * n + i + 1
     c, d = a + n + 1, a + n  # c above b, d above a
-    even = ((i + j) % 2 == 0).ravel()
+    diagonals = scene.get("diagonals", "alternating")
+    if diagonals == "uniform":
+        even = np.zeros(a.size, dtype=bool)  # split b-d everywhere
+    elif diagonals == "alternating":
+        even = ((i + j) % 2 == 0).ravel()
+    else:
+        raise ValueError(f"scene.diagonals must be 'uniform' or 'alternating', got {diagonals!r}")
     a, b, c, d = a.ravel(), b.ravel(), c.ravel(), d.ravel()
     first = np.where(even[:, None], np.stack([a, b, c], 1), np.stack([a, b, d], 1))
     second = np.where(even[:, None], np.stack([a, c, d], 1), np.stack([b, c, d], 1))
@@ -58,6 +66,12 @@ def plate_mesh(scene: dict, shape_id: int) -> tuple[np.ndarray, np.ndarray, np.n
     fixed = np.zeros(n * n, dtype=bool)
     fixed[:n] = True
     return positions, cells, fixed
+
+
+def plate_material(scene: dict, poissons_ratio: float) -> Material:
+    """The plate's material for one Poisson's ratio (2D idealization: scene.plane)."""
+    return Material(scene["youngs_modulus"], float(poissons_ratio), scene["density"], scene["rayleigh_mass"],
+                    scene["rayleigh_stiffness"], plane=scene.get("plane", "strain"))
 
 
 def circle(radius: float, centre: tuple[float, float], count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -88,24 +102,27 @@ def collider_path(scene: dict, spec: PlateSpec) -> tuple[np.ndarray, np.ndarray]
 
 
 def check_config(config: dict) -> None:
-    """Refuse a configuration before any work starts: invalid materials or solver settings,
-    or a scene that can leave the task space [-1, 1]^2 (plate or largest collider)."""
+    """Refuse a configuration before any work starts: invalid materials or solver settings, or a
+    plate that leaves the task space [-1, 1]^2. The collider starts above the plate's top edge
+    and may start outside the task space (the paper's plate fills it; radii and features are
+    relative, so only the deformable object has to lie inside)."""
     scene = config["scene"]
     for nu in scene["poissons_ratios"]:
-        Material(scene["youngs_modulus"], nu, scene["density"], scene["rayleigh_mass"], scene["rayleigh_stiffness"])
+        plate_material(scene, nu)
     SolverConfig(dt=scene["frame_dt"] / int(scene["substeps"]), **config["solver"])
     if int(scene["num_steps"]) < 2:
         raise ValueError(f"scene.num_steps must be >= 2, got {scene['num_steps']}")
     lo, mode, hi = scene["collider"]["radius_fraction"]
     if not 0 < lo <= mode <= hi:
         raise ValueError(f"collider.radius_fraction must be 0 < min <= mode <= max, got {[lo, mode, hi]}")
+    if not scene["collider"]["start_gap"] > 0:
+        raise ValueError(f"collider.start_gap must be > 0 (the collider starts above the plate), got {scene['collider']['start_gap']}")
     top = scene["bottom_y"] + scene["height"]
     for shape in range(len(scene["top_widths"]) * len(scene["top_offsets"])):
         bl, br, tl, tr = trapezoid(scene, shape)
-        r = hi * (tr - tl)
-        extent = max(abs(bl), abs(br), abs(tl) + r, abs(tr) + r, abs(scene["bottom_y"]), top + scene["collider"]["start_gap"] + 2 * r)
-        if extent > 1.0:
-            raise ValueError(f"plate shape {shape} with its largest collider reaches {extent:.3f} > 1: the scene must fit in [-1, 1]^2")
+        extent = max(abs(bl), abs(br), abs(tl), abs(tr), abs(scene["bottom_y"]), abs(top))
+        if extent > 1.0 + 1e-9:
+            raise ValueError(f"plate shape {shape} reaches {extent:.3f} > 1: the plate must fit in [-1, 1]^2")
 
 
 def num_combinations(scene: dict) -> int:
@@ -122,9 +139,7 @@ def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajec
     spec = sample_spec(scene, combination // n_nu, scene["poissons_ratios"][combination % n_nu], rng)
     rest, cells, fixed = plate_mesh(scene, spec.shape_id)
     path, faces = collider_path(scene, spec)
-    material = Material(
-        scene["youngs_modulus"], spec.poissons_ratio, scene["density"], scene["rayleigh_mass"], scene["rayleigh_stiffness"]
-    )
+    material = plate_material(scene, spec.poissons_ratio)
     substeps = int(scene["substeps"])
     solver = SolverConfig(dt=scene["frame_dt"] / substeps, **config["solver"])
     positions, diagnostics = simulate(rest, cells, fixed, material, solver, [(path, faces)], substeps)
@@ -148,6 +163,7 @@ def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajec
             "collider_start_x": spec.collider_start_x,
             "collider_travel": float(scene["collider"]["travel"]),
             "frame_dt": float(scene["frame_dt"]),
+            "plane": material.plane,
         },
         diagnostics=diagnostics,
     )

@@ -1,5 +1,5 @@
-"""Corotational linear elasticity on linear simplices (triangles in 2D plane strain,
-tetrahedra in 3D), vectorized over elements in float64.
+"""Corotational linear elasticity on linear simplices (triangles in 2D, plane strain or plane
+stress: `Material.plane`; tetrahedra in 3D), vectorized over elements in float64.
 
 Energy density (McAdams et al. 2011 "corotated" model), with F = R S the polar decomposition:
     psi(F) = mu ||F - R||^2 + lambda / 2 (tr(R^T F) - d)^2,
@@ -64,7 +64,7 @@ class ElasticBody:
         Dm_inv = torch.linalg.inv(Dm)
         # shape-function gradients B[c, a, :] so that F = sum_a x_a (outer) B_a
         self.B = torch.cat([-Dm_inv.sum(dim=1, keepdim=True), Dm_inv], dim=1)
-        lam, mu = material.lame
+        lam, mu = material.lame_parameters(d)
         self.lam, self.mu = lam, mu
         eye = torch.eye(d, dtype=torch.float64)
         BB = torch.einsum("cak,cbk->cab", self.B, self.B)

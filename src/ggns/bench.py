@@ -77,6 +77,48 @@ TRAIN_SPEEDUP_GOAL = 3.0  # >= 3x the reference training throughput
 ROLLOUT_SPEEDUP_GOAL = 10.0  # <= reference / 10 ms per trajectory step in the batched rollout
 GRAPH_SHARE_GOAL = 0.20  # graph construction under 20 % of a rollout step
 BATCHING_GOAL = 10.0  # 32 trajectories at once >= 10x the throughput of one at a time
+GEMM_SHARE_GOAL = 0.50  # the model's matrix FLOPs per training second >= 50 % of the machine's fp32 GEMM rate
+MATMUL_OPS = ("aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm")
+
+
+def gemm_rate(device: torch.device, m: int = 2048, k: int = 2048, n: int = 2048, repeats: int = 10) -> float:
+    """The machine's fp32 matrix-multiply rate in GFLOP/s: median of `repeats` [m, k] @ [k, n]
+    products after 3 warm-up ones (the default large square product measures the peak)."""
+    a, b = torch.randn(m, k, device=device), torch.randn(k, n, device=device)
+    times = []
+    for i in range(repeats + 3):
+        _sync(device)
+        start = time.perf_counter()
+        a @ b
+        _sync(device)
+        if i >= 3:
+            times.append(time.perf_counter() - start)
+    return 2.0 * m * k * n / statistics.median(times) / 1e9
+
+
+def _iteration(model, batch, optimizer) -> None:
+    """One optimizer iteration: graph construction, forward, backward, Adam step."""
+    loss = model.window_loss(batch, train=True)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+
+
+def _matrix_work(model, batch, optimizer) -> tuple[float, float]:
+    """(matrix FLOPs of one training iteration, forward and backward, counted by torch's
+    FlopCounterMode; share of the iteration's CPU time spent inside matrix products, from the
+    profiler's self times of MATMUL_OPS)."""
+    from torch.profiler import ProfilerActivity, profile
+    from torch.utils.flop_counter import FlopCounterMode
+
+    with FlopCounterMode(display=False) as counter:
+        _iteration(model, batch, optimizer)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        _iteration(model, batch, optimizer)
+    events = prof.key_averages()
+    total = sum(e.self_cpu_time_total for e in events)
+    matmul = sum(e.self_cpu_time_total for e in events if e.key in MATMUL_OPS)
+    return float(counter.get_total_flops()), matmul / total if total else float("nan")
 
 
 def _resolve_device(device: str) -> torch.device:
@@ -154,10 +196,7 @@ def _bench_training(name: str, model, datamodule, train_batches: int, device: to
         with _GraphTimer(batch, device) as timer:
             _sync(device)
             start = time.perf_counter()
-            loss = model.window_loss(batch, train=True)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
+            _iteration(model, batch, optimizer)
             _sync(device)
             elapsed = time.perf_counter() - start
         if i >= warmup:
@@ -172,6 +211,7 @@ def _bench_training(name: str, model, datamodule, train_batches: int, device: to
                                      b.num_graphs) for b in batches[statistics_batches + warmup:]]
             sizes[use_points] = tuple(float(np.mean(v)) for v in zip(*per_batch))
     median = statistics.median(iteration)
+    flops, matmul_share = _matrix_work(model, batches[-1], optimizer)  # after the timing: not timed
     row = {
         "model": name,
         "windows per batch": float(np.mean([b.num_graphs for b in batches[statistics_batches + warmup:]])),
@@ -182,6 +222,9 @@ def _bench_training(name: str, model, datamodule, train_batches: int, device: to
         "graphs/s": float(np.mean(graphs)) / median,
         "graph construction ms per batch": _median_ms(construction),
         "graph construction share": statistics.median(construction) / median,
+        "matrix GFLOP per iteration": flops / 1e9,
+        "matrix GFLOP/s (per iteration time)": flops / 1e9 / median,
+        "matmul share of CPU time (profiler)": matmul_share,
     }
     for use_points, (nodes, edges) in sizes.items():
         group = "with points" if use_points else "without points"
@@ -245,12 +288,14 @@ def bench_models(dataset: str = "plate_small", models: tuple[str, ...] = ("ggns"
     many = TrajectoryBatch.from_trajectories([tests[i % len(tests)] for i in range(rollout_trajectories)], device=device)
     steps = single.num_steps - 1 if rollout_steps is None else min(rollout_steps, single.num_steps - 1)
 
+    peak = gemm_rate(device)
     train_rows, rollout_rows = [], []
     for name in models:
         torch.manual_seed(seed)
         model = MODELS[name](dim=dim, latent=latent, blocks=blocks).to(device)
         print(f"bench models: {name} training ...", flush=True)
         train_rows.append(_bench_training(name, model, datamodule, train_batches, device))
+        train_rows[-1]["share of the GEMM rate"] = train_rows[-1]["matrix GFLOP/s (per iteration time)"] / peak
         for schedule in ((EveryK(1), Never()) if model.uses_points else (Never(),)):
             print(f"bench models: {name} rollout {schedule} ...", flush=True)
             one = _bench_rollout(model, single, schedule, steps, repeats, device)
@@ -271,13 +316,14 @@ def bench_models(dataset: str = "plate_small", models: tuple[str, ...] = ("ggns"
     machine = (torch.cuda.get_device_name(device) if device.type == "cuda"
                else f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, {threads} torch threads")
     print(f"\nbench models: dataset {dataset!r} ({dim}D), device {device} ({machine}); random weights, "
-          f"latent {latent}, {blocks} blocks")
+          f"latent {latent}, {blocks} blocks; fp32 GEMM rate {peak:.0f} GFLOP/s (2048^3 product, median)")
     print(f"\ntraining: {batch_size} windows per batch (ggns_lstm: windows of 5 transitions = 5 graphs each), "
           f"median over {train_batches} iterations after 2 warm-up")
     _print_table(train_rows)
     print(f"\nrollout: {steps} steps, median of {repeats} whole rollouts; 1 vs {rollout_trajectories} trajectories")
     _print_table(rollout_rows)
     goals = _goals(train_rows, rollout_rows, rollout_trajectories)
+    train_rows[0]["GEMM rate GFLOP/s"] = peak  # into the CSV (once)
     print("\ngoals:")
     for line in goals:
         print(f"  {line}")
@@ -323,6 +369,9 @@ def _goals(train_rows: list[dict], rollout_rows: list[dict], trajectories: int) 
         if reference:
             lines.append(f"training {row['model']}: {row['graphs/s']:.1f} graphs/s vs >= {TRAIN_SPEEDUP_GOAL * reference:.0f} "
                          f"(3x the reference {reference:.0f}): {met(row['graphs/s'] >= TRAIN_SPEEDUP_GOAL * reference)}")
+        share = row["share of the GEMM rate"]
+        lines.append(f"training {row['model']}: matrix work at {share:.0%} of the GEMM rate vs >= {GEMM_SHARE_GOAL:.0%}: "
+                     f"{met(share >= GEMM_SHARE_GOAL)}")
     for row in rollout_rows:
         label = f"rollout {row['model']} {row['schedule']}"
         share = row[f"graph share ({trajectories} traj.)"]

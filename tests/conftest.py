@@ -30,3 +30,27 @@ def tiny_data_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("plate_tiny")
     generate(load_config("plate_tiny", [f"output={out}"]), progress=False)
     return out
+
+
+TINY12 = "plate_tiny12.yaml"  # the data preset written by `cli_data` into its directory
+
+
+@pytest.fixture(scope="session")
+def cli_data(tmp_path_factory):
+    """A data preset, <dir>/plate_tiny12.yaml (plate_tiny with T = 12 states, so that the m+10 metric
+    is defined in validation and test), and all its splits (3 / 2 / 2 trajectories) in <dir>,
+    generated once per session; returns <dir>."""
+    import torch
+
+    from ggns.config import CONF_DIR
+    from ggns.data.generate import generate
+
+    out = tmp_path_factory.mktemp("plate_tiny12")
+    (out / TINY12).write_text(f"base: {CONF_DIR / 'data' / 'plate_tiny.yaml'}\nscene:\n  num_steps: 12\n"
+                              f"output: {out}\n")
+    threads = torch.get_num_threads()  # in-process generation sets it to 1
+    try:
+        generate(load_config(out / TINY12), progress=False)
+    finally:
+        torch.set_num_threads(threads)
+    return out

@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import shutil
 import sys
 import types
 from pathlib import Path
@@ -23,18 +22,22 @@ import pytorch_lightning as pl
 import torch
 
 from ggns.__main__ import main
-from ggns.config import CONF_DIR, load_config
-from ggns.data.generate import generate, split_path
+from ggns.config import CONF_DIR
+from ggns.data.generate import split_path
 from ggns.data.module import SimulationDataModule, WindowDataset, collate
 from ggns.data.schema import read_trajectories
+from ggns.evaluation.callbacks import RolloutEvaluation
+from ggns.evaluation.evaluate import zero_motion_one_step_mse
 from ggns.evaluation.rollout import RolloutError, rollout
 from ggns.evaluation.schedules import EveryK, FirstM, Never
+from ggns.evaluation.selection import val_metric
 from ggns.graphs.state import TrajectoryBatch
-from ggns.models.simulators import GGNS, GGNSLSTM, MGN, MGNM
+from ggns.models.simulators import GGNS, GGNSLSTM, MGN, MGNM, MGNShared
+from conftest import TINY12
 
 T = 8  # states per plate_tiny trajectory
 SMALL = dict(latent=16, blocks=2)
-ALL_MODELS = (GGNS, GGNSLSTM, MGN, MGNM)
+ALL_MODELS = (GGNS, GGNSLSTM, MGN, MGNM, MGNShared)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -111,6 +114,16 @@ def test_ggns_takes_graphs_with_and_without_points(val_batch):
     assert not torch.allclose(a, b)  # the points reach the mesh
 
 
+def test_mgn_shared_is_the_ggns_core_on_mesh_and_collider_edges(val_batch):
+    """The authors' plate MGN: GGNS's one-hot shared processor, no world edges, no points."""
+    model, ggns = make(MGNShared), make(GGNS)
+    assert (model.edge_partition, model.type_encoding) == (ggns.edge_partition, ggns.type_encoding)
+    assert not model.uses_points and [str(s) for s in model.schedules] == ["never"]
+    graph = first_graph(model, val_batch, True)
+    assert set(graph.node_types) == {"mesh", "collider"}
+    assert ("mesh", "world", "mesh") not in graph.edge_types and ("collider", "near", "mesh") in graph.edge_types
+
+
 @pytest.mark.parametrize("cls", [MGN, MGNM])
 def test_mgn_graphs_never_hold_points(cls, val_batch):
     model = make(cls)
@@ -182,7 +195,7 @@ def test_each_model_overfits_one_window(cls, window, factor, trajs):
     batch = collate([WindowDataset(trajs["train"], window)[1]])
     assert batch.num_steps == window + 1
     model.fit_normalizers([batch])
-    optimizer = model.configure_optimizers()
+    optimizer = model.configure_optimizers()["optimizer"]
     with torch.no_grad():
         initial = model.window_loss(batch, train=False).item()
     for _ in range(100):
@@ -272,6 +285,38 @@ def test_lstm_window_loss_carries_state_through_the_window(trajs):
             whole = model.window_loss(window, train=False)
             parts = torch.stack([model.window_loss(s, train=False) for s in singles]).mean()
         assert torch.isclose(whole, parts, rtol=1e-5).item() != carries, (cls.__name__, whole, parts)
+
+
+def test_training_loss_by_point_clouds(trajs):
+    """`window_loss(by_points=True)`: the mean per-sample loss of the graphs with and without a point
+    cloud (GGNS draws one per window), each equal to the per-sample losses computed one window at a
+    time; equal meshes, so the whole loss is their mean over all samples. A group absent is left out."""
+    windows = [WindowDataset(trajs["train"], 1)[i] for i in range(3 * (T - 1))]
+    batch = collate(windows)
+    model = make(GGNS, noise_std=0.0)
+    model.fit_normalizers([batch])
+    torch.manual_seed(3)
+    drawn = torch.rand(batch.num_graphs) < 0.5  # the draw `training_graphs` makes first (no noise)
+    assert 0 < drawn.sum() < batch.num_graphs
+    torch.manual_seed(3)
+    with torch.no_grad():
+        loss, groups = model.window_loss(batch, train=True, by_points=True)
+        alone = []
+        for window, points in zip(windows, drawn.tolist()):
+            single = collate([window])
+            free = ~single.fixed
+            out = model.predict_normalized(first_graph(model, single, points))[0]
+            target = model.target_normalizer((single.positions[1] - single.positions[0])[free])
+            alone.append((out[free] - target).square().mean())
+    alone = torch.stack(alone)
+    torch.testing.assert_close(groups["points"], alone[drawn].mean(), rtol=1e-5, atol=0)
+    torch.testing.assert_close(groups["no_points"], alone[~drawn].mean(), rtol=1e-5, atol=0)
+    torch.testing.assert_close(loss, alone.mean(), rtol=1e-5, atol=0)
+    with torch.no_grad():
+        assert set(model.window_loss(batch, train=False, by_points=True)[1]) == {"points"}  # evaluation: always
+        mgn = make(MGN)
+        mgn.fit_normalizers([batch])
+        assert set(mgn.window_loss(batch, train=True, by_points=True)[1]) == {"no_points"}
 
 
 # ---- 7. normalizer statistics in checkpoints ---------------------------------------------------------
@@ -400,22 +445,7 @@ def test_datamodule_loaders(tiny_data_dir, trajs):
     assert batch.num_steps == 5 and batch.num_graphs == 3 * (T - 4)
 
 
-# ---- 4. the command line end to end -------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def cli_data(tiny_data_dir, tmp_path_factory):
-    """plate_tiny's train / val splits and a test split of 2 trajectories with 12 states (so that
-    the m+10 metric is defined)."""
-    out = tmp_path_factory.mktemp("cli_data")
-    for split in ("train", "val"):
-        shutil.copy(split_path(tiny_data_dir, split), split_path(out, split))
-    threads = torch.get_num_threads()  # in-process generation sets it to 1
-    try:
-        generate(load_config("plate_tiny", [f"output={out}", "scene.num_steps=12"]), ["test"], progress=False)
-    finally:
-        torch.set_num_threads(threads)
-    return out
-
-
+# ---- 4. the command line end to end (data: the `cli_data` fixture, T = 12) ---------------------------------------
 def run_cli(args: list[str]) -> None:
     """`python -m ggns <args>` in this process (sys.argv emptied: LightningCLI warns when it also has one)."""
     with pytest.MonkeyPatch.context() as patch:
@@ -424,7 +454,7 @@ def run_cli(args: list[str]) -> None:
 
 
 def cli_args(config: str, data_dir, logs, version: str, *extra) -> list[str]:
-    return ["--config", str(CONF_DIR / "plate" / f"{config}.yaml"), "--data.dataset", "plate_tiny",
+    return ["--config", str(CONF_DIR / "plate" / f"{config}.yaml"), "--data.dataset", str(data_dir / TINY12),
             "--data.data_dir", str(data_dir), "--data.batch_size", "8", "--data.generate_missing", "false",
             "--trainer.logger.init_args.save_dir", str(logs), "--trainer.logger.init_args.version", version,
             "--model.init_args.latent", "16", "--model.init_args.blocks", "2",
@@ -441,10 +471,9 @@ def events(log_dir: Path):
     return acc
 
 
-def checkpoint_callback_state(ckpt: dict) -> dict:
-    """The state of the ModelCheckpoint that monitors the validation rollout."""
-    (state,) = [v for k, v in ckpt["callbacks"].items() if k.startswith("ModelCheckpoint") and v["monitor"]]
-    return state
+def family_states(ckpt: dict) -> dict:
+    """{monitored scalar: state} of the ModelCheckpoints that keep a best checkpoint per metric family."""
+    return {v["monitor"]: v for k, v in ckpt["callbacks"].items() if k.startswith("ModelCheckpoint") and v["monitor"]}
 
 
 @pytest.fixture(scope="module")
@@ -455,37 +484,64 @@ def ggns_fit(cli_data, tmp_path_factory):
     return logs
 
 
-def test_cli_fit_logs_and_checkpoints(ggns_fit):
+def test_cli_fit_logs_and_checkpoints(ggns_fit, cli_data):
     run = ggns_fit / "ggns" / "fit"
-    (best,) = (run / "checkpoints").glob("best-epoch=*.ckpt")
     last = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
     assert (run / "config.yaml").is_file()
     assert last["epoch"] == 1 and last["global_step"] == 4  # 2 epochs x limit_train_batches 2
     assert last["hyper_parameters"]["latent"] == 16 and last["hyper_parameters"]["blocks"] == 2
-    state = checkpoint_callback_state(last)
-    assert state["monitor"] == "val/rollout_mse" and Path(state["best_model_path"]) == best
-    best_score = float(state["best_model_score"])
-    assert math.isfinite(best_score) and best_score > 0
 
     acc = events(run)
     scalars = acc.Tags()["scalars"]
-    for tag in ("train/loss", "val/loss", "val/rollout_mse", "val/rollout_mse_k5", "val/one_step_mse"):
+    for tag in ("train/loss", "train/loss_points", "train/loss_no_points", "val/loss", "val/rollout_mse",
+                "val/rollout_mse_k1", "val/rollout_mse_never", "val/m10_mse", "val/one_step_mse",
+                "val/one_step_mse_zero_motion", "val/one_step_ratio", "val/evaluation_seconds"):
         assert tag in scalars, tag
-    rollout_mse = [e.value for e in acc.Scalars("val/rollout_mse")]
-    assert len(rollout_mse) == 2 and all(math.isfinite(v) for v in rollout_mse)  # one per epoch, no sanity check
-    assert math.isclose(min(rollout_mse), best_score, rel_tol=1e-6)
-    assert [e.value for e in acc.Scalars("val/rollout_mse_k5")] == rollout_mse
+    values = {tag: [e.value for e in acc.Scalars(tag)] for tag in scalars if tag.startswith("val/")}
+    for tag, v in values.items():  # one per epoch, no sanity check
+        assert len(v) == 2 and all(math.isfinite(x) and x > 0 for x in v), tag
+    assert values["val/rollout_mse"] == values["val/rollout_mse_k1"]  # the alias of GGNS's primary family
+
+    # one best checkpoint per family, selected on the family's own scalar
+    states = family_states(last)
+    assert sorted(states) == ["val/m10_mse", "val/rollout_mse_k1", "val/rollout_mse_never"]
+    for family in ("k1", "never", "m10"):
+        (path,) = (run / "checkpoints").glob(f"best-{family}-step=*.ckpt")
+        state = states[val_metric(family)]
+        assert Path(state["best_model_path"]) == path
+        assert math.isclose(float(state["best_model_score"]), min(values[val_metric(family)]), rel_tol=1e-6)
+        assert torch.load(path, weights_only=False)["global_step"] == int(path.stem.split("=")[1])
+
+    # the second validation's scalars are last.ckpt's metrics on the 2 validation trajectories
+    model = GGNS.load_from_checkpoint(run / "checkpoints" / "last.ckpt")
+    val = TrajectoryBatch.from_trajectories(read_trajectories(split_path(cli_data, "val")))
+    direct = model.evaluate(val, [EveryK(1), Never()], iou=False, m_plus_10_stride=10)
+    for name in ("one_step_mse", "rollout_mse_k1", "rollout_mse_never", "m10_mse"):
+        assert math.isclose(values[f"val/{name}"][1], direct[name].mean().item(), rel_tol=1e-5), name
+    zero = values["val/one_step_mse_zero_motion"]
+    assert zero[0] == zero[1] and math.isclose(zero[0], zero_motion_one_step_mse(val).mean().item(), rel_tol=1e-6)
+    for one, ratio in zip(values["val/one_step_mse"], values["val/one_step_ratio"]):
+        assert math.isclose(ratio, one / zero[0], rel_tol=1e-5)
     assert "rollout/val_0" in acc.Tags()["images"]
     image = acc.Images("rollout/val_0")
     assert len(image) == 2 and image[0].width > 100 and image[0].height > 100
 
 
-def test_cli_test_writes_paper_metrics_of_the_best_checkpoint(ggns_fit, cli_data):
-    (best,) = (ggns_fit / "ggns" / "fit" / "checkpoints").glob("best-epoch=*.ckpt")
+def test_cli_test_writes_paper_metrics_of_the_best_checkpoint(ggns_fit, cli_data, capsys):
+    (best,) = (ggns_fit / "ggns" / "fit" / "checkpoints").glob("best-k1-step=*.ckpt")
     run_cli(["test", *cli_args("ggns", cli_data, ggns_fit, "test", "--ckpt_path", str(best))])
     run = ggns_fit / "ggns" / "test"
-    assert (run / "test_metrics.md").is_file()
     summary = json.loads((run / "test_metrics.json").read_text())
+    # the tested checkpoint is named: path, step, epoch and the scalar it was selected on
+    saved = torch.load(best, weights_only=False)
+    info = summary.pop("checkpoint")
+    assert info["path"] == str(best) and (info["global_step"], info["epoch"]) == (saved["global_step"], saved["epoch"])
+    assert info["selected_on"] == "val/rollout_mse_k1"
+    assert info["score"] == float(family_states(saved)["val/rollout_mse_k1"]["best_model_score"])
+    line = (f"tested checkpoint: {best.name} (global step {saved['global_step']}, epoch {saved['epoch']}; "
+            f"best val/rollout_mse_k1 = ")
+    assert line in capsys.readouterr().out and line in (run / "test_metrics.md").read_text()
+
     keys = ["one_step_mse", "m10_mse"] + [f"rollout_{m}_{s}" for m in ("mse", "iou")
                                           for s in ("k1", "k2", "k5", "k10", "never")]
     assert sorted(summary) == sorted(keys)
@@ -502,6 +558,21 @@ def test_cli_test_writes_paper_metrics_of_the_best_checkpoint(ggns_fit, cli_data
     direct = model.evaluate(batch)
     for name, s in summary.items():
         assert math.isclose(direct[name].mean().item(), s["mean"], rel_tol=1e-5, abs_tol=1e-12), name
+
+
+def test_rollout_evaluation_refuses_what_it_cannot_log(tiny_data_dir, tmp_path):
+    """val/m10_mse on trajectories of T <= 10 states, or a primary family the model does not evaluate:
+    an error at the start of fit naming the setting, not a ModelCheckpoint failing after training."""
+    with pytest.raises(ValueError, match=r"val/m10_mse needs val trajectories of more than 10 states, these have 8; "
+                                         r"set m_plus_10: false"):
+        run_cli(["fit", *cli_args("mgn", tiny_data_dir, tmp_path, "fit", "--data.dataset", "plate_tiny")])
+    assert not list(tmp_path.rglob("*.ckpt"))
+    with pytest.raises(ValueError, match=r"primary 'k1' is not evaluated for MGN; choose one of \['never', 'm10'\]"):
+        RolloutEvaluation(primary="k1").primary_family(make(MGN))
+    assert RolloutEvaluation(primary="m10").primary_family(make(GGNS)) == "m10"
+    assert [str(s) for s in RolloutEvaluation(schedules=["every:5", "every:1"]).schedules(make(GGNS))] == [
+        "every:1", "never", "every:5"]
+    assert [str(s) for s in RolloutEvaluation(schedules=["every:5"]).schedules(make(MGN))] == ["never"]
 
 
 def test_cli_resume_continues_without_new_statistics(ggns_fit, cli_data):
@@ -524,13 +595,13 @@ def test_cli_resume_continues_without_new_statistics(ggns_fit, cli_data):
 
 
 def test_last_checkpoint_is_the_newest_state_between_validations(cli_data, tmp_path):
-    """Validation every 2nd epoch of 3: the best checkpoint is epoch 1's, while last.ckpt must hold
+    """Validation every 2nd epoch of 3: the best checkpoints are epoch 1's, while last.ckpt must hold
     the end of epoch 2, which no validation followed (a resume continues from there). Lightning's
     own save_last only copies a newly saved best checkpoint and would stop at epoch 1."""
     run_cli(["fit", *cli_args("mgn", cli_data, tmp_path, "fit", "--trainer.max_epochs", "3",
                            "--trainer.check_val_every_n_epoch", "2", "--trainer.limit_val_batches", "1")])
     checkpoints = tmp_path / "mgn" / "fit" / "checkpoints"
-    assert [p.name for p in checkpoints.glob("best-*.ckpt")] == ["best-epoch=1.ckpt"]
+    assert sorted(p.name for p in checkpoints.glob("best-*.ckpt")) == ["best-m10-step=4.ckpt", "best-never-step=4.ckpt"]
     last = torch.load(checkpoints / "last.ckpt", weights_only=False)
     assert (last["epoch"], last["global_step"]) == (2, 6)  # 3 epochs x 2 batches
 
@@ -539,12 +610,17 @@ def test_cli_mgn_fit_and_test(cli_data, tmp_path):
     run_cli(["fit", *cli_args("mgn", cli_data, tmp_path, "fit", "--trainer.max_epochs", "1",
                            "--trainer.check_val_every_n_epoch", "1", "--trainer.limit_val_batches", "1")])
     run = tmp_path / "mgn" / "fit"
-    (best,) = (run / "checkpoints").glob("best-epoch=0.ckpt")
+    (best,) = (run / "checkpoints").glob("best-never-step=2.ckpt")
     assert (run / "checkpoints" / "last.ckpt").is_file()
     acc = events(run)
-    assert "val/rollout_mse_never" in acc.Tags()["scalars"] and "rollout/val_0" in acc.Tags()["images"]
+    scalars = acc.Tags()["scalars"]
+    assert "rollout/val_0" in acc.Tags()["images"]
+    assert "train/loss_no_points" in scalars and "train/loss_points" not in scalars  # MGN never sees points
+    assert "val/rollout_mse_k1" not in scalars and "val/m10_mse" in scalars
+    assert [e.value for e in acc.Scalars("val/rollout_mse")] == [e.value for e in acc.Scalars("val/rollout_mse_never")]
     run_cli(["test", *cli_args("mgn", cli_data, tmp_path, "test", "--ckpt_path", str(best))])
     summary = json.loads((tmp_path / "mgn" / "test" / "test_metrics.json").read_text())
+    assert summary.pop("checkpoint")["selected_on"] == "val/rollout_mse_never"
     assert sorted(summary) == ["m10_mse", "one_step_mse", "rollout_iou_never", "rollout_mse_never"]
     assert all(math.isfinite(s["mean"]) and s["count"] == 2 for s in summary.values())
     # predict: the RolloutWriter of the config saves the rollouts of the test trajectories

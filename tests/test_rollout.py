@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import pytest
 import torch
 from torch_geometric.utils import scatter
@@ -12,6 +13,7 @@ from torch_geometric.utils import scatter
 from ggns.config import load_config
 from ggns.data.generate import generate
 from ggns.data.schema import SplitReader
+from ggns.evaluation.evaluate import evaluate_batch, zero_motion_one_step_mse
 from ggns.evaluation.metrics import m_plus_10_mse
 from ggns.evaluation.rollout import RolloutError, m_plus_10_rollouts, rollout
 from ggns.evaluation.schedules import EveryK, FirstM, Never
@@ -117,6 +119,27 @@ def test_fixed_nodes_stay_at_true_positions(batch):
     assert torch.equal(positions[:, ~batch.fixed], batch.positions[:1, ~batch.fixed].expand(T, -1, -1))
 
 
+def test_zero_motion_baseline_by_hand_and_through_the_engine(batch):
+    """`zero_motion_one_step_mse` (the validation's no-motion reference): per trajectory, the mean over
+    t = 1..T-1 of the squared step x_t - x_{t-1} over all nodes and coordinates, fixed nodes at their
+    known positions adding zero (here they move, so that this is checked); and the same numbers as
+    the one-step MSE of a zero-displacement step function through the engine."""
+    moved = dataclasses.replace(batch, positions=batch.positions.clone())
+    moved.positions[:, moved.fixed] += torch.arange(T, dtype=torch.float64)[:, None, None]
+    got = zero_motion_one_step_mse(moved)
+    o = moved.node_offsets
+    for b in range(moved.num_graphs):
+        x, free = moved.positions[:, o[b]:o[b + 1]].numpy(), (~moved.fixed[o[b]:o[b + 1]]).numpy()
+        by_hand = np.mean([((x[t] - x[t - 1]) ** 2 * free[:, None]).sum() / x[t].size for t in range(1, T)])
+        assert by_hand > 0 and got[b].item() == pytest.approx(by_hand, rel=1e-12)
+
+    def zero(graph, state):
+        return torch.zeros_like(graph["mesh"].pos), state
+
+    engine = evaluate_batch(zero, moved, CONN, schedules=[], m_plus_10=False, iou=False)
+    torch.testing.assert_close(got, engine["one_step_mse"], rtol=1e-12, atol=0)
+
+
 def test_non_finite_step_raises_naming_step_and_trajectory(batch):
     node = int(torch.nonzero(~batch.fixed & (batch.mesh_batch == 1))[0])
 
@@ -158,6 +181,23 @@ def test_m_plus_horizon_rollouts_track_then_freeze(batch):
         assert torch.equal(free[m + 1 :], free[m : m + 1].expand(horizon, -1, -1))
     stacked = {m: p[None] for m, p in preds.items()}  # one "trajectory" of all nodes, for the metric
     m_plus_10_mse(stacked, batch.positions[None], horizon=horizon)
+
+
+def test_m_plus_horizon_stride_averages_every_strided_start(batch):
+    """`evaluate_batch(m_plus_10_stride=s)`: the m+horizon error averaged over the starts 0, s, 2s, ...
+    only (the validation's cheaper estimate); stride 1 is every start."""
+    step_fn, horizon = true_step(batch, points_only=True), 3
+    starts = list(range(T - horizon))
+    preds = m_plus_10_rollouts(step_fn, batch, CONN, horizon=horizon)
+    o = batch.node_offsets
+    per_m = [m_plus_10_mse({m: preds[m][None, :, o[0]:o[1]]}, batch.positions[None, :, o[0]:o[1]], horizon=horizon)[0]
+             for m in starts]  # trajectory 0
+    for stride in (1, 2):
+        got = evaluate_batch(step_fn, batch, CONN, schedules=[], iou=False, horizon=horizon, m_plus_10_stride=stride)
+        assert got["m10_mse"][0].item() == pytest.approx(np.mean(per_m[::stride]), rel=1e-12)
+    assert np.mean(per_m[::2]) != pytest.approx(np.mean(per_m), rel=1e-3)  # the stride changes the value here
+    with pytest.raises(ValueError, match="m_plus_10_stride must be >= 1"):
+        evaluate_batch(step_fn, batch, CONN, m_plus_10_stride=0)
 
 
 def test_m_plus_horizon_model_state_is_copied(batch):

@@ -1,51 +1,102 @@
-"""Multi-seed sweeps end to end on tiny generated data (real subprocess runs of the Lightning CLI),
-resume after a run is deleted, and the SLURM job-array script."""
+"""Multi-seed sweeps end to end on tiny generated data (real subprocess runs of the Lightning CLI):
+each metric family tested with the checkpoint selected on it, resume (finished runs and test parts
+skipped), the fallbacks of fits without per-family checkpoints, and the SLURM job-array script."""
 from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import pytest
+import torch
 import yaml
 
 from ggns.config import CONF_DIR
 from ggns.experiments.baselines import GENERATED_MESH_FILE, baseline_spec, run_baselines
-from ggns.experiments.sweep import load_sweep, run_sweep, runs_of, slurm_script, summarize
+from ggns.experiments.sweep import Run, load_sweep, run_sweep, runs_of, slurm_script, summarize
+from conftest import TINY12
 
 
 def write_sweep(tmp_path, data_dir, seeds=(0, 1)) -> str:
-    tiny = ["--data.dataset", "plate_tiny", "--data.data_dir", str(data_dir), "--data.generate_missing", "false",
-            "--data.batch_size", "8", "--model.init_args.latent", "16", "--model.init_args.blocks", "2",
-            "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2", "--trainer.limit_val_batches", "1",
+    tiny = ["--data.dataset", str(data_dir / TINY12), "--data.data_dir", str(data_dir), "--data.generate_missing",
+            "false", "--data.batch_size", "8", "--model.init_args.latent", "16", "--model.init_args.blocks", "2",
+            "--trainer.max_epochs", "2", "--trainer.limit_train_batches", "2", "--trainer.limit_val_batches", "1",
+            "--trainer.check_val_every_n_epoch", "1",
             "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
     sweep = {"output": str(tmp_path / "sweep"), "seeds": list(seeds), "parallel": 2, "args": tiny,
              "models": {"mgn": {"config": str(CONF_DIR / "plate" / "mgn.yaml")}},
-             "baselines": {"dataset": "plate_tiny", "data_dir": str(data_dir), "alpha_shapes": True, "static": True,
-                           "initial_mesh": ["mgn"]}}
+             "baselines": {"dataset": str(data_dir / TINY12), "data_dir": str(data_dir), "alpha_shapes": True,
+                           "static": True, "initial_mesh": ["mgn"]}}
     path = tmp_path / "sweep.yaml"
     path.write_text(yaml.safe_dump(sweep))
     return str(path)
 
 
-def test_two_seed_sweep_runs_skips_and_resumes(tiny_data_dir, tmp_path):
-    sweep = load_sweep(write_sweep(tmp_path, tiny_data_dir))
+def perturbed_copy(source: Path, target: Path, monitor: str, step: int) -> None:
+    """`source` with its weights scaled by 1.01 and global step `step`, saved as `target` and
+    recorded as the best checkpoint of the ModelCheckpoint monitoring `monitor`."""
+    checkpoint = torch.load(source, weights_only=False)
+    checkpoint["state_dict"] = {k: v * 1.01 if k.startswith("core.") and v.is_floating_point() else v
+                                for k, v in checkpoint["state_dict"].items()}
+    checkpoint["global_step"] = step
+    (state,) = [v for k, v in checkpoint["callbacks"].items()
+                if k.startswith("ModelCheckpoint") and v["monitor"] == monitor]
+    state["best_model_path"] = str(target)
+    torch.save(checkpoint, target)
+
+
+def test_two_seed_sweep_runs_skips_and_resumes(cli_data, tmp_path):
+    sweep = load_sweep(write_sweep(tmp_path, cli_data))
     runs = runs_of(sweep)
     assert [(r.model, r.seed) for r in runs] == [("mgn", 0), ("mgn", 1)]
     messages = []
     run_sweep(sweep, log=messages.append)
     metrics = {r.seed: json.loads(r.metrics_path.read_text()) for r in runs}
-    for m in metrics.values():
+    for run, m in zip(runs, metrics.values()):
         assert "rollout_mse_never" in m and m["rollout_mse_never"]["count"] == 2
+        # each metric family was tested with the checkpoint selected on it (MGN: never, m10; one-step: never)
+        (never,) = (run.fit_dir / "checkpoints").glob("best-never-step=*.ckpt")
+        (m10,) = (run.fit_dir / "checkpoints").glob("best-m10-step=*.ckpt")
+        chosen = m.pop("checkpoints")
+        assert {f: c["name"] for f, c in chosen.items()} == {"never": never.name, "m10": m10.name,
+                                                             "one_step": never.name}
+        assert chosen["never"]["selected_on"] == "val/rollout_mse_never"
+        assert chosen["m10"]["selected_on"] == "val/m10_mse"
+        assert chosen["m10"]["metrics"] == ["m10_mse"] and sorted(chosen["never"]["metrics"]) == ["rollout_iou_never",
+                                                                                                   "rollout_mse_never"]
+        assert sorted(m) == ["m10_mse", "one_step_mse", "rollout_iou_never", "rollout_mse_never"]
+        # ... by one test per checkpoint, each computing only its families' metrics
+        parts = {path.parent.name: data for path, data in
+                 ((p, json.loads(p.read_text())) for p in run.test_dir.glob("*/test_metrics.json"))}
+        assert sorted(parts) == sorted([never.stem, m10.stem])
+        assert sorted(parts[m10.stem]) == ["checkpoint", "m10_mse", "one_step_mse"]
+        assert parts[m10.stem]["m10_mse"] == m["m10_mse"] and parts[never.stem]["one_step_mse"] == m["one_step_mse"]
+        assert "| m10 | " + m10.name in (run.test_dir / "test_metrics.md").read_text()
     assert metrics[0]["rollout_mse_never"]["mean"] != metrics[1]["rollout_mse_never"]["mean"]  # seeds differ
-    stamp = runs[0].metrics_path.stat().st_mtime_ns
+    stamp = runs[1].metrics_path.stat().st_mtime_ns
 
-    shutil.rmtree(runs[1].fit_dir)
-    shutil.rmtree(runs[1].test_dir)
+    # resume: seed 1 is finished and skipped; seed 0 got a new best-m10 checkpoint (another step and
+    # weights) and lost its merged metrics: neither its fit nor its finished never part runs again,
+    # only a test of the new m10 checkpoint
+    run = runs[0]
+    directory = run.fit_dir / "checkpoints"
+    (old,) = directory.glob("best-m10-step=*.ckpt")
+    perturbed_copy(old, directory / "best-m10-step=1.ckpt", "val/m10_mse", 1)
+    old.unlink()
+    run.metrics_path.unlink()
     messages.clear()
     run_sweep(sweep, log=messages.append)
-    assert any("skip mgn seed 0" in m for m in messages)
-    assert "fit mgn seed 1" in messages and "fit mgn seed 0" not in messages
-    assert runs[0].metrics_path.stat().st_mtime_ns == stamp and runs[1].finished
+    assert any("skip mgn seed 1" in m for m in messages) and runs[1].metrics_path.stat().st_mtime_ns == stamp
+    assert not any(m.startswith("fit") for m in messages)  # the fit ended before its tests began
+    assert any(m.startswith("skip test mgn seed 0 best-never-step=") for m in messages)
+    assert [m for m in messages if m.startswith("test")] == ["test (m10 with best-m10-step=1.ckpt) mgn seed 0"]
+    merged = json.loads(run.metrics_path.read_text())
+    m10 = merged["checkpoints"]["m10"]
+    assert (m10["global_step"], m10["name"], m10["selected_on"]) == (1, "best-m10-step=1.ckpt", "val/m10_mse")
+    assert merged["m10_mse"]["mean"] != metrics[0]["m10_mse"]["mean"]
+    part = json.loads((run.test_dir / "best-m10-step=1" / "test_metrics.json").read_text())
+    assert merged["m10_mse"] == part["m10_mse"]
+    assert merged["rollout_mse_never"] == metrics[0]["rollout_mse_never"]
 
     written = run_baselines(sweep, log=messages.append)
     assert sorted(p.name for p in written) == [GENERATED_MESH_FILE] * 2 + ["test_metrics.json"] * 2
@@ -63,10 +114,58 @@ def test_two_seed_sweep_runs_skips_and_resumes(tiny_data_dir, tmp_path):
     assert "2 of 2 runs finished" in summary and "| mgn |" in summary
     assert "## Rollout IoU from a mesh generated from the first point cloud" in summary
     assert "| alpha_shapes |" in summary and "| static |" in summary and "generated_mesh_iou.png" in summary
-    assert "| mgn | 1 | last.ckpt | 2 / 0 | 0 |" in summary  # no validation ran: last.ckpt, 2 steps in epoch 0
+    # per run and family: the tested checkpoint, its step / epoch and the scalar it was selected on
+    assert "| mgn | 0 | m10 | best-m10-step=1.ckpt | 1 / " in summary
+    (never,) = (runs[1].fit_dir / "checkpoints").glob("best-never-step=*.ckpt")
+    step = torch.load(never, weights_only=False)["global_step"]
+    assert f"| mgn | 1 | never | {never.name} | {step} / " in summary
+    assert f"| mgn | 1 | one_step | {never.name} | {step} / " in summary
+    assert summary.count("val/rollout_mse_never = ") == 4  # never and one_step of both runs
     csv_text = (runs[0].output / "summary.csv").read_text()
     assert "mgn,rollout_mse_never," in csv_text and "mgn,generated_mesh_iou_never," in csv_text
     assert "alpha_shapes,generated_mesh_iou_k1," in csv_text
+
+
+def test_checkpoint_fallbacks_of_older_and_unvalidated_fits(tmp_path):
+    """A fit from before per-family selection (one best-epoch=N.ckpt) tests every family with that
+    checkpoint and says so; a fit that never validated tests with last.ckpt."""
+    import pytorch_lightning as pl
+
+    from ggns.models.simulators import MGN
+
+    trainer = pl.Trainer(logger=False, enable_checkpointing=False, accelerator="cpu")
+    trainer.strategy.connect(MGN(latent=8, blocks=1))
+    run = Run("mgn", 0, str(CONF_DIR / "plate" / "mgn.yaml"), (), tmp_path)
+    directory = run.fit_dir / "checkpoints"
+    directory.mkdir(parents=True)
+    trainer.save_checkpoint(directory / "last.ckpt")
+    selections = run.checkpoints()
+    assert list(selections) == ["never", "m10", "one_step"]
+    assert all(s.checkpoint.name == "last.ckpt" and "no validation ran" in s.note for s in selections.values())
+    shutil.copy(directory / "last.ckpt", directory / "best-epoch=3.ckpt")
+    selections = run.checkpoints()
+    assert all(s.checkpoint.name == "best-epoch=3.ckpt" and "before per-family selection" in s.note
+               for s in selections.values())
+    (part,) = run.test_parts()
+    assert (part.families, part.schedules, part.m_plus_10) == (("never", "m10", "one_step"), ("never",), True)
+    assert part.test_dir == run.test_dir / "best-epoch=3"
+    command = run.test_command(part)
+    assert command[-6:] == ["--ckpt_path", str(directory / "best-epoch=3.ckpt"), "--model.init_args.eval_schedules",
+                            '["never"]', "--model.init_args.test_m_plus_10", "true"]
+    # a run tested before per-family selection (its test_metrics.json names no checkpoints): the
+    # summary shows the checkpoint it was tested with, and says so
+    run.test_dir.mkdir()
+    run.metrics_path.write_text(json.dumps({"rollout_mse_never": {"mean": 0.5, "std": 0.1, "count": 2}}))
+    sweep = {"output": str(tmp_path), "seeds": [0], "models": {"mgn": {"config": run.config}}}
+    summary = summarize(sweep, log=lambda message: None).read_text()
+    assert ("| mgn | 0 | never | best-epoch=3.ckpt | 0 / 0 | - | tested before per-family selection (one checkpoint "
+            "for every family) | - |") in summary
+    # a family without its own best falls back to another family's, and says so
+    shutil.copy(directory / "last.ckpt", directory / "best-never-step=5.ckpt")
+    selections = run.checkpoints()
+    assert selections["never"].checkpoint.name == "best-never-step=5.ckpt" and selections["never"].note == ""
+    assert selections["m10"].checkpoint.name == "best-never-step=5.ckpt"
+    assert selections["m10"].note == "no best-m10 checkpoint: never's"
 
 
 def test_a_single_array_task_and_bad_sweeps(tiny_data_dir, tmp_path):

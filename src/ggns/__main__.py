@@ -7,7 +7,8 @@
     sweep     multi-seed sweeps of model configs
     bench     benchmarks (`bench sim`: simulator and dataset generation speed;
               `bench models`: training and rollout throughput of the learned simulators;
-              `bench tradeoff`: time per rollout step against rollout error, CSV + Pareto plot)
+              `bench tradeoff`: time per rollout step against rollout error, CSV + Pareto plot;
+              `bench learning`: learning curves of model variants per CPU-second, table + plots)
     demo      the README's main job on a small embedded default
 """
 from __future__ import annotations
@@ -47,6 +48,21 @@ def _geometry(args: argparse.Namespace) -> None:
 def _bench(args: argparse.Namespace) -> None:
     from .bench import bench_models, bench_sim
 
+    if args.overrides and args.what != "learning":
+        raise ValueError(f"--set {args.overrides} is for `bench learning` only")
+    if args.what == "learning":
+        from .experiments.learning import load_learning, run_learning, write_report
+
+        overrides = list(args.overrides)
+        for key in ("minutes", "parallel", "output_dir"):
+            if getattr(args, key) is not None:
+                overrides.append(f"{'output' if key == 'output_dir' else key}={getattr(args, key)}")
+        spec = load_learning(args.config or "plate_ggns", overrides)
+        if args.report_only:
+            write_report(spec)
+        else:
+            run_learning(spec, args.variant)
+        return
     if args.what == "tradeoff":
         from .experiments.tradeoff import tradeoff
 
@@ -57,7 +73,8 @@ def _bench(args: argparse.Namespace) -> None:
                 raise ValueError(f"--checkpoint takes name=path, got {item!r}")
             checkpoints[name] = path
         tradeoff(args.dataset, checkpoints, trajectories=args.trajectories or 4,
-                 coarsen=tuple(int(c) for c in args.coarsen.split(",") if c.strip()), output_dir=args.output_dir,
+                 coarsen=tuple(int(c) for c in args.coarsen.split(",") if c.strip()),
+                 output_dir=args.output_dir or "lightning_logs/tradeoff",
                  schedules=tuple(s.strip() for s in args.schedules.split(",") if s.strip()),
                  batch=args.rollout_trajectories, repeats=args.repeats,
                  grid_nodes=[int(n) for n in args.grid_nodes.split(",") if n.strip()] if args.grid_nodes else None)
@@ -68,7 +85,7 @@ def _bench(args: argparse.Namespace) -> None:
                      device=args.device, output=args.output, batch_size=args.batch_size,
                      rollout_trajectories=args.rollout_trajectories, repeats=args.repeats)
         return
-    bench_sim(args.config, trajectories=args.trajectories or 9, generate_splits=args.generate)
+    bench_sim(args.config or "plate", trajectories=args.trajectories or 9, generate_splits=args.generate)
 
 
 def _demo(args: argparse.Namespace) -> None:
@@ -126,9 +143,13 @@ def main(argv: list[str] | None = None) -> None:
     geo.set_defaults(run=_geometry)
 
     bench = sub.add_parser("bench", help="benchmarks")
-    bench.add_argument("what", choices=["sim", "models", "tradeoff"],
-                       help="sim: simulator and generation; models: learned simulators; tradeoff: speed vs error")
-    bench.add_argument("--config", default="plate", help="sim: data preset")
+    bench.add_argument("what", choices=["sim", "models", "tradeoff", "learning"],
+                       help="sim: simulator and generation; models: learned simulators; tradeoff: speed vs error; "
+                       "learning: learning curves of model variants within a wall-clock budget")
+    bench.add_argument("--set", action="append", dest="overrides", default=[], metavar="KEY=VALUE",
+                       help="learning: a learning-file override (repeatable), e.g. --set val_every=50")
+    bench.add_argument("--config", help="sim: data preset (default plate); learning: learning file in conf/learning/ "
+                       "or a YAML path (default plate_ggns)")
     bench.add_argument("--trajectories", type=int, help="sim: trajectories timed one by one (default 9); "
                        "tradeoff: test trajectories scored (default 4)")
     bench.add_argument("--generate", action="store_true", help="sim: also time generating all splits of the config with its workers")
@@ -146,7 +167,12 @@ def main(argv: list[str] | None = None) -> None:
     bench.add_argument("--schedules", default="every:1,never", help="tradeoff: point-cloud schedules of the model rollouts")
     bench.add_argument("--grid-nodes", help="tradeoff: mesh nodes per side, comma-separated resolutions for the simulator "
                        "and the models (default: the preset's)")
-    bench.add_argument("--output-dir", default="lightning_logs/tradeoff", help="tradeoff: where tradeoff.csv/.png go")
+    bench.add_argument("--output-dir", help="tradeoff: where tradeoff.csv/.png go (default lightning_logs/tradeoff); "
+                       "learning: where the variants and the report go (default: the file's output)")
+    bench.add_argument("--minutes", type=float, help="learning: wall-clock budget per variant (default: the file's)")
+    bench.add_argument("--parallel", type=int, help="learning: variants at once (default: the file's)")
+    bench.add_argument("--variant", action="append", help="learning: run only this variant (repeatable)")
+    bench.add_argument("--report-only", action="store_true", help="learning: only write the report from the logs")
     bench.set_defaults(run=_bench)
 
     sweep = sub.add_parser("sweep", help="multi-seed sweep of model configs (fit + test per run, resumable)")

@@ -1,13 +1,17 @@
 """Lightning callbacks shared by all simulators: rollout metrics on the validation split (for
-checkpoint selection) and rollout pictures in TensorBoard. Both run at the end of every
-validation epoch (set how often with the Trainer's `check_val_every_n_epoch`), never during the
-sanity check, and roll out through the module's `evaluate` / `rollout`, i.e. the one engine.
-`RolloutWriter` saves the rollouts of `predict`.
+checkpoint selection per metric family, `evaluation.selection`) and rollout pictures in
+TensorBoard. Both run at the end of every validation epoch (set how often with the Trainer's
+`check_val_every_n_epoch`), never during the sanity check, and roll out through the module's
+`evaluate` / `rollout`, i.e. the one engine. `TestedCheckpoint` names the checkpoint a `test`
+evaluated; `RolloutWriter` saves the rollouts of `predict`.
 """
 from __future__ import annotations
 
+import json
+import time
 import warnings
 from pathlib import Path
+from typing import Sequence
 
 import pytorch_lightning as pl
 import torch
@@ -15,8 +19,9 @@ from pytorch_lightning.callbacks import BasePredictionWriter
 from pytorch_lightning.loggers import TensorBoardLogger
 
 from ..graphs.state import TrajectoryBatch
-from .evaluate import schedule_key
-from .schedules import Never, Schedule, parse_schedule
+from .evaluate import schedule_key, zero_motion_one_step_mse
+from .schedules import EveryK, Never, Schedule, parse_schedule
+from .selection import CHECKPOINT_KEY, M10, checkpoint_info, describe, val_metric
 
 
 def _eval_batch(trainer: pl.Trainer, split: str, count: int | None, cache: dict) -> TrajectoryBatch:
@@ -34,26 +39,93 @@ def _effective(schedule: Schedule, pl_module) -> Schedule:
 
 
 class RolloutEvaluation(pl.Callback):
-    """Logs `val/rollout_mse` (full-rollout MSE from S_0 under `schedule` on the first
-    `num_trajectories` trajectories of `split`, all rolled out as one batch), the same value under
-    `val/rollout_mse_<schedule>`, and `val/one_step_mse`; monitor `val/rollout_mse` with a
-    ModelCheckpoint to select checkpoints on rollout quality."""
+    """Validation scalars for checkpoint selection, one per metric family (`evaluation.selection`),
+    from the first `num_trajectories` trajectories of `split` rolled out as one batch through the
+    module's `evaluate`:
 
-    def __init__(self, schedule: str = "every:5", num_trajectories: int | None = 16, split: str = "val"):
-        self.schedule = parse_schedule(schedule)
-        self.num_trajectories, self.split = num_trajectories, split
+        val/one_step_mse              teacher-forced next-step MSE
+        val/one_step_mse_zero_motion  the same for predicting no motion (x_{t+1} = x_t); computed once
+        val/one_step_ratio            one_step_mse / one_step_mse_zero_motion (below 1: better than no motion)
+        val/rollout_mse_k1            full rollout, a point cloud every step (models with point clouds only)
+        val/rollout_mse_never         full rollout without point clouds
+        val/rollout_mse_<s>           each extra schedule in `schedules` (`schedule_key`)
+        val/m10_mse                   the m+10 MSE over every `m_plus_10_stride`-th start m (if m_plus_10)
+        val/rollout_mse               alias of `primary` (a family above; default k1, or never without
+                                      point clouds), kept for older configs
+        val/evaluation_seconds        wall-clock time of this evaluation
+
+    m+10 needs trajectories of more than 10 states; shorter ones raise at the start of `fit`."""
+
+    def __init__(self, num_trajectories: int | None = 27, schedules: Sequence[str] = (), m_plus_10: bool = True,
+                 m_plus_10_stride: int = 10, primary: str | None = None, split: str = "val"):
+        if m_plus_10_stride < 1:
+            raise ValueError(f"m_plus_10_stride must be >= 1, got {m_plus_10_stride}")
+        self.extra = [parse_schedule(s) for s in schedules]
+        self.num_trajectories, self.split, self.primary = num_trajectories, split, primary
+        self.m_plus_10, self.m_plus_10_stride = m_plus_10, m_plus_10_stride
         self._cache: dict = {}
+
+    def schedules(self, pl_module) -> list[Schedule]:
+        """The rollouts of a model: k1 (with point clouds), never, then the extra schedules, once each."""
+        wanted = [EveryK(1)] if pl_module.uses_points else []
+        wanted += [Never()] + [_effective(s, pl_module) for s in self.extra]
+        return list({schedule_key(s): s for s in wanted}.values())
+
+    def primary_family(self, pl_module) -> str:
+        """The family `val/rollout_mse` aliases; ValueError when the model does not evaluate it."""
+        primary = self.primary or ("k1" if pl_module.uses_points else "never")
+        families = [schedule_key(s) for s in self.schedules(pl_module)] + ([M10] if self.m_plus_10 else [])
+        if primary not in families:
+            raise ValueError(f"RolloutEvaluation: primary {primary!r} is not evaluated for {type(pl_module).__name__}; "
+                             f"choose one of {families}")
+        return primary
+
+    def setup(self, trainer: pl.Trainer, pl_module, stage: str) -> None:
+        if stage != "fit":
+            return
+        self.primary_family(pl_module)
+        steps = _eval_batch(trainer, self.split, self.num_trajectories, self._cache).num_steps
+        if self.m_plus_10 and steps <= 10:
+            raise ValueError(f"RolloutEvaluation: val/m10_mse needs {self.split} trajectories of more than 10 states, "
+                             f"these have {steps}; set m_plus_10: false (and drop the ModelCheckpoint monitoring "
+                             f"val/m10_mse) for such data")
 
     def on_validation_epoch_end(self, trainer: pl.Trainer, pl_module) -> None:
         if trainer.sanity_checking:
             return
+        start = time.perf_counter()
         batch = _eval_batch(trainer, self.split, self.num_trajectories, self._cache)
-        schedule = _effective(self.schedule, pl_module)
-        metrics = pl_module.evaluate(batch, [schedule], m_plus_10=False, iou=False)
-        value = metrics[f"rollout_mse_{schedule_key(schedule)}"].mean()
-        pl_module.log("val/rollout_mse", value, batch_size=batch.num_graphs)
-        pl_module.log(f"val/rollout_mse_{schedule_key(schedule)}", value, batch_size=batch.num_graphs)
-        pl_module.log("val/one_step_mse", metrics["one_step_mse"].mean(), batch_size=batch.num_graphs)
+        metrics = pl_module.evaluate(batch, self.schedules(pl_module), m_plus_10=self.m_plus_10, iou=False,
+                                     m_plus_10_stride=self.m_plus_10_stride)
+        if "zero_motion" not in self._cache:
+            self._cache["zero_motion"] = zero_motion_one_step_mse(batch).mean().item()
+        values = {f"val/{name}": v.mean().item() for name, v in metrics.items()}
+        values["val/one_step_mse_zero_motion"] = self._cache["zero_motion"]
+        values["val/one_step_ratio"] = values["val/one_step_mse"] / values["val/one_step_mse_zero_motion"]
+        values["val/rollout_mse"] = values[val_metric(self.primary_family(pl_module))]
+        values["val/evaluation_seconds"] = time.perf_counter() - start
+        for name, value in values.items():
+            pl_module.log(name, value, batch_size=batch.num_graphs)
+
+
+class TestedCheckpoint(pl.Callback):
+    """Names the checkpoint that `test` evaluated (`selection.checkpoint_info`: path, global step,
+    epoch and, for a best-* checkpoint, the scalar it was selected on): prints it and adds it to the
+    run's test_metrics.md and, under "checkpoint", to test_metrics.json. Those files are written by
+    the module's `on_test_epoch_end`, which runs before this callback's `on_test_end`."""
+
+    def on_test_end(self, trainer: pl.Trainer, pl_module) -> None:
+        if not trainer.is_global_zero:
+            return
+        info = checkpoint_info(trainer.ckpt_path) if trainer.ckpt_path else None
+        line = f"tested checkpoint: {describe(info)}" + (f", {info['path']}" if info else "")
+        print(line)
+        directory = Path(trainer.log_dir or ".")
+        table, summary = directory / "test_metrics.md", directory / "test_metrics.json"
+        if table.is_file():
+            table.write_text(table.read_text() + "\n" + line + "\n")
+        if summary.is_file():
+            summary.write_text(json.dumps({**json.loads(summary.read_text()), CHECKPOINT_KEY: info}, indent=2))
 
 
 class RolloutPictures(pl.Callback):

@@ -6,7 +6,8 @@ accumulates them over batches and reports the mean (and std over trajectories). 
     one_step_mse        teacher-forced next-step error (`one_step_predictions`)
     rollout_mse_<s>     full-rollout error from S_0 under point-cloud schedule s
     rollout_iou_<s>     mean IoU over the predicted states of that rollout (2D only)
-    m10_mse             the m+10-step error (`metrics.m_plus_10_mse`), averaged over m
+    m10_mse             the m+10-step error (`metrics.m_plus_10_mse`), averaged over m (every m, or
+                        every `m_plus_10_stride`-th for a cheaper estimate during training)
 with <s> = k1, k2, k5, k10 (a point cloud every k steps), never, first<m> (`schedule_key`).
 Errors average over all mesh nodes and coordinates, as in the paper (fixed nodes are set to
 their known positions and contribute zero error).
@@ -52,9 +53,12 @@ def trajectory_cells(batch: TrajectoryBatch, b: int) -> Tensor:
 def evaluate_batch(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Connectivity,
                    schedules: Iterable[Schedule] = (Never(),), *, with_material: bool = False,
                    one_step_schedule: Schedule = Never(), m_plus_10: bool = True, iou: bool = True,
-                   horizon: int = 10) -> dict[str, Tensor]:
+                   horizon: int = 10, m_plus_10_stride: int = 1) -> dict[str, Tensor]:
     """Per-trajectory metrics {name: float64 [B]} (module docstring) of `step_fn` on `batch`.
-    m_plus_10 is skipped when trajectories are too short (T <= horizon); iou needs 2D."""
+    m_plus_10 is skipped when trajectories are too short (T <= horizon) and averages over every
+    `m_plus_10_stride`-th start m (1: all, the paper's metric); iou needs 2D."""
+    if m_plus_10_stride < 1:
+        raise ValueError(f"m_plus_10_stride must be >= 1, got {m_plus_10_stride}")
     true = split_trajectories(batch.positions, batch)
     out: dict[str, list[float]] = {}
 
@@ -71,12 +75,23 @@ def evaluate_batch(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Connec
             add(f"rollout_iou_{key}", [batch_iou(p, t, trajectory_cells(batch, b))[0, 1:].mean().item()
                                        for b, (p, t) in enumerate(zip(pred, true))])
     if m_plus_10 and batch.num_steps > horizon:
-        preds = m_plus_10_rollouts(step_fn, batch, connectivity, horizon, m_plus_10_starts(batch.num_steps, horizon),
+        preds = m_plus_10_rollouts(step_fn, batch, connectivity, horizon,
+                                   m_plus_10_starts(batch.num_steps, horizon)[::m_plus_10_stride],
                                    with_material)
         per_m = {m: split_trajectories(p, batch) for m, p in preds.items()}
         add("m10_mse", [m_plus_10_mse({m: p[b] for m, p in per_m.items()}, t, horizon=horizon)[0]
                         for b, t in enumerate(true)])
     return out
+
+
+def zero_motion_one_step_mse(batch: TrajectoryBatch) -> Tensor:
+    """`one_step_mse` per trajectory (float64 [B]) of predicting no motion: S_t predicted as the true
+    S_{t-1}, fixed nodes at their known positions (as `one_step_predictions` sets them)."""
+    positions = batch.positions
+    pred = torch.cat([positions[:1], torch.where(batch.fixed[:, None], positions[1:], positions[:-1])])
+    return torch.tensor([one_step_mse(p[:, 1:], t[:, 1:])[0]
+                         for p, t in zip(split_trajectories(pred, batch), split_trajectories(positions, batch))],
+                        dtype=torch.float64)
 
 
 class MetricTable:

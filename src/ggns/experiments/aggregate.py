@@ -2,7 +2,9 @@
 
 Each run (one model config, one seed; a Lightning fit + test) writes `test_metrics.json`
 into its log dir: {metric name: {"mean", "std", "count"}} over test trajectories (see
-`ggns.evaluation.evaluate` and `Simulator.on_test_epoch_end`). A run's value of a metric is
+`ggns.evaluation.evaluate` and `Simulator.on_test_epoch_end`), plus the tested checkpoint(s)
+(`ggns.evaluation.selection`: "checkpoint" for one `test`, "checkpoints" per metric family for a
+sweep run's merged tests). A run's value of a metric is
 that "mean". The paper reports, per model and metric, the mean and standard deviation of
 those values over seeds; `aggregate` computes them, `to_markdown`/`to_csv` write them out
 and `normalized_benefit` gives the "normalized benefit of point clouds" against k.
@@ -14,23 +16,27 @@ from __future__ import annotations
 import csv
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Sequence
+
+from ..evaluation.selection import CHECKPOINT_KEY, CHECKPOINTS_KEY
 
 Table = dict[str, dict[str, dict[str, float]]]
 
 
 @dataclass
 class RunResult:
-    """The test metrics of one run: {metric name: mean over test trajectories}."""
+    """The test metrics of one run: {metric name: mean over test trajectories}, and the checkpoint
+    each metric family was tested with ({family: `checkpoint_info` + note, metrics}; {} if not recorded)."""
     model: str
     seed: int
     metrics: dict[str, float]
+    checkpoints: dict[str, dict] = field(default_factory=dict)
 
 
 def load_run(path: str | Path, model: str, seed: int) -> RunResult:
-    """Read a run's `test_metrics.json`, keeping the "mean" of each metric."""
+    """Read a run's `test_metrics.json`, keeping the "mean" of each metric and the recorded checkpoints."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no test metrics file at {path}")
@@ -42,6 +48,8 @@ def load_run(path: str | Path, model: str, seed: int) -> RunResult:
         raise ValueError(f"malformed test metrics in {path}: expected an object of metrics")
     metrics = {}
     for name, entry in data.items():
+        if name in (CHECKPOINT_KEY, CHECKPOINTS_KEY):
+            continue
         if not isinstance(entry, dict) or "mean" not in entry:
             raise ValueError(f"malformed test metrics in {path}: metric {name!r} has no 'mean'")
         try:
@@ -49,7 +57,7 @@ def load_run(path: str | Path, model: str, seed: int) -> RunResult:
         except (TypeError, ValueError) as e:
             raise ValueError(f"malformed test metrics in {path}: metric {name!r} mean "
                              f"{entry['mean']!r} is not a number") from e
-    return RunResult(model=model, seed=seed, metrics=metrics)
+    return RunResult(model=model, seed=seed, metrics=metrics, checkpoints=data.get(CHECKPOINTS_KEY) or {})
 
 
 def aggregate(runs: Iterable[RunResult]) -> Table:

@@ -26,7 +26,8 @@ Configured by the sweep file's optional `baselines` section (2D datasets only):
       alpha_shapes: true
       static: true
       initial_mesh: [ggns, mgn] # sweep models rolled out from the generated mesh, each under its
-                                # own evaluation schedules (the model's `eval_schedules`)
+                                # own evaluation schedules (the model's `eval_schedules`), each
+                                # schedule with the checkpoint its family was tested with
 
 Existing result files are kept (an interrupted sweep resumes); delete them to recompute.
 """
@@ -53,7 +54,7 @@ def _summary(values: dict[str, list[float]]) -> dict[str, dict[str, float]]:
     return table.summary()
 
 
-def _write_json(path: Path, data: dict) -> None:
+def write_json(path: Path, data: dict) -> None:
     """Write via a temporary file and rename, so an interrupted write leaves no partial result."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
@@ -139,7 +140,7 @@ def run_baselines(sweep: dict, log=print) -> list[Path]:
         if spec.get(row) and not path.is_file():
             trajectories = trajectories if trajectories is not None else _test_trajectories(spec)
             log(f"baseline {row} on {len(trajectories)} test trajectories")
-            _write_json(path, compute(trajectories))
+            write_json(path, compute(trajectories))
             written.append(path)
     for run in runs_of(sweep):
         path = run.test_dir / GENERATED_MESH_FILE
@@ -147,6 +148,11 @@ def run_baselines(sweep: dict, log=print) -> list[Path]:
             continue
         trajectories = trajectories if trajectories is not None else _test_trajectories(spec)
         log(f"baseline initial mesh generation: {run.model} seed {run.seed}")
-        _write_json(path, generated_mesh_metrics(load_simulator(run.checkpoint(), map_location="cpu"), trajectories))
+        metrics = {}
+        for part in run.test_parts():  # each schedule with the checkpoint selected on its family
+            if part.schedules:
+                model = load_simulator(part.checkpoint, map_location="cpu")
+                metrics.update(generated_mesh_metrics(model, trajectories, part.schedules))
+        write_json(path, metrics)
         written.append(path)
     return written

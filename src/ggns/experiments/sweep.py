@@ -10,13 +10,23 @@ A sweep file (conf/sweeps/<name>.yaml or a path) holds:
       ggns: {config: conf/plate/ggns.yaml, args: []}
       mgn:  {config: conf/plate/mgn.yaml}
 
-A run is finished when `<output>/<model>/seed_<s>_test/test_metrics.json` exists; finished runs
-are skipped, and a fit that left `last.ckpt` behind is resumed from it, so an interrupted sweep
-continues where it stopped. `summarize` aggregates the finished runs into <output>/summary.{md,csv}. On a cluster, `slurm_script` renders a job array with one task
-per run (`python -m ggns sweep --config ... --task $SLURM_ARRAY_TASK_ID`).
+Each metric family of a run is tested with the checkpoint selected on that family
+(`ggns.evaluation.selection`; `Run.checkpoints`): one `test` per distinct checkpoint, computing
+only the metrics of the families it was selected for (`TestPart`, in
+<output>/<model>/seed_<s>_test/<checkpoint name>/), then merged into
+<output>/<model>/seed_<s>_test/test_metrics.{json,md}, whose "checkpoints" entry names, per
+family, the checkpoint (global step, the scalar it was selected on) and any fallback.
+
+A run is finished when that merged `test_metrics.json` exists; finished runs are skipped, a test
+part whose `test_metrics.json` exists is not run again (nor the fit, which ended before it), and a
+fit that left `last.ckpt` behind is resumed from it, so an interrupted sweep continues where it
+stopped. `summarize` aggregates the finished runs into <output>/summary.{md,csv}. On a cluster,
+`slurm_script` renders a job array with one task per run (`python -m ggns sweep --config ...
+--task $SLURM_ARRAY_TASK_ID`).
 """
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -27,15 +37,51 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from ..config import resolve_preset
+from ..evaluation.evaluate import markdown_table, schedule_key
+from ..evaluation.schedules import parse_schedule
+from ..evaluation.selection import (CHECKPOINT_KEY, CHECKPOINTS_KEY, FAMILY_CHECKPOINT, M10, ONE_STEP, candidates,
+                                    checkpoint_glob, checkpoint_info, describe, metric_family)
 from .aggregate import RunResult, aggregate, load_run, normalized_benefit, to_csv, to_markdown
-from .baselines import GENERATED_MESH_FILE
+from .baselines import GENERATED_MESH_FILE, write_json
 from .baselines import ROWS as BASELINE_ROWS
 from .findings import check_findings, findings_markdown
 from .figures import write_figures
 
 
 @dataclass(frozen=True)
-class Run:
+class Selection:
+    """The checkpoint a metric family is tested with; `note` says so when it is not the family's own best."""
+    family: str
+    checkpoint: Path
+    note: str = ""
+
+
+class _Tested:
+    """Finished once its `test_dir` holds a test_metrics.json."""
+
+    @property
+    def metrics_path(self) -> Path:
+        return self.test_dir / "test_metrics.json"
+
+    @property
+    def finished(self) -> bool:
+        return self.metrics_path.is_file()
+
+
+@dataclass(frozen=True)
+class TestPart(_Tested):
+    """One `test` of a run: a checkpoint, tested only on the metrics of `families` (the eval
+    `schedules` among them, and m+10 if `m_plus_10`; the one-step MSE is always computed), logging
+    to `test_dir`."""
+    checkpoint: Path
+    families: tuple[str, ...]
+    schedules: tuple[str, ...]
+    m_plus_10: bool
+    test_dir: Path
+
+
+@dataclass(frozen=True)
+class Run(_Tested):
     model: str
     seed: int
     config: str
@@ -50,14 +96,6 @@ class Run:
     def test_dir(self) -> Path:
         return self.output / self.model / f"seed_{self.seed}_test"
 
-    @property
-    def metrics_path(self) -> Path:
-        return self.test_dir / "test_metrics.json"
-
-    @property
-    def finished(self) -> bool:
-        return self.metrics_path.is_file()
-
     def _cli(self, subcommand: str, version: str) -> list[str]:
         return [sys.executable, "-m", "ggns", subcommand, "--config", self.config, "--seed_everything", str(self.seed),
                 "--trainer.logger.init_args.save_dir", str(self.output),
@@ -69,19 +107,76 @@ class Run:
         last = self.fit_dir / "checkpoints" / "last.ckpt"
         return cmd + (["--ckpt_path", str(last)] if last.is_file() else [])
 
-    def test_command(self) -> list[str]:
-        return self._cli("test", f"seed_{self.seed}_test") + ["--ckpt_path", str(self.checkpoint())]
+    def test_command(self, part: TestPart) -> list[str]:
+        version = f"seed_{self.seed}_test/{part.test_dir.name}"
+        return self._cli("test", version) + [
+            "--ckpt_path", str(part.checkpoint), "--model.init_args.eval_schedules", json.dumps(list(part.schedules)),
+            "--model.init_args.test_m_plus_10", str(part.m_plus_10).lower()]
 
-    def checkpoint(self) -> Path:
-        """The fit's selected checkpoint (best on the validation rollout), else its last one."""
+    def _eval_settings(self) -> tuple[list[str], bool]:
+        """The fit's test settings from its checkpoint's hyperparameters: (eval_schedules, test_m_plus_10)."""
+        import torch
+
         directory = self.fit_dir / "checkpoints"
-        best = sorted(directory.glob("best-*.ckpt"), key=lambda p: p.stat().st_mtime)
-        if best:
-            return best[-1]
-        last = directory / "last.ckpt"
-        if last.is_file():
-            return last
+        for path in [directory / "last.ckpt", *sorted(directory.glob("*.ckpt"))]:
+            if path.is_file():
+                hparams = torch.load(path, map_location="cpu", weights_only=False)["hyper_parameters"]
+                return list(hparams["eval_schedules"]), bool(hparams.get("test_m_plus_10", True))
         raise FileNotFoundError(f"{directory}: the fit of {self.model} seed {self.seed} left no checkpoint")
+
+    def checkpoints(self) -> dict[str, Selection]:
+        """The checkpoint each metric family of the run's test is tested with (`selection`): the first
+        of `selection.candidates(family)` with a best checkpoint (the newest best-<family>-*.ckpt),
+        else the single best checkpoint of a fit from before per-family selection (best-epoch=N.ckpt),
+        else last.ckpt. Families: the eval schedules' keys, m10 (if tested) and one_step."""
+        schedules, m_plus_10 = self._eval_settings()
+        directory = self.fit_dir / "checkpoints"
+
+        def newest(pattern: str, keep=lambda path: True) -> Path | None:
+            found = sorted((p for p in directory.glob(pattern) if keep(p)), key=lambda p: p.stat().st_mtime)
+            return found[-1] if found else None
+
+        legacy = newest("best-*.ckpt", lambda p: not FAMILY_CHECKPOINT.match(p.name))
+        last = directory / "last.ckpt"
+        families = [schedule_key(parse_schedule(s)) for s in schedules] + ([M10] if m_plus_10 else []) + [ONE_STEP]
+        out = {}
+        for family in dict.fromkeys(families):
+            found = [(c, newest(checkpoint_glob(c))) for c in candidates(family)]
+            used = next(((c, path) for c, path in found if path is not None), None)
+            if used is not None:
+                note = "" if used[0] == family or family == ONE_STEP else f"no best-{family} checkpoint: {used[0]}'s"
+                out[family] = Selection(family, used[1], note)
+            elif legacy is not None:
+                out[family] = Selection(family, legacy, "no per-family best checkpoint: the fit's single best "
+                                                        "(selected before per-family selection)")
+            elif last.is_file():
+                out[family] = Selection(family, last, "no best checkpoint (no validation ran): the last one")
+            else:
+                raise FileNotFoundError(f"{directory}: the fit of {self.model} seed {self.seed} left no checkpoint")
+        return out
+
+    def test_parts(self) -> list[TestPart]:
+        """One `TestPart` per distinct checkpoint of `checkpoints`, in `<test_dir>/<checkpoint name>`."""
+        schedules = {schedule_key(parse_schedule(s)): s for s in self._eval_settings()[0]}
+        groups: dict[Path, list[str]] = {}
+        for family, selection in self.checkpoints().items():
+            groups.setdefault(selection.checkpoint, []).append(family)
+        return [TestPart(path, tuple(families), tuple(schedules[f] for f in families if f in schedules),
+                         M10 in families, self.test_dir / path.stem) for path, families in groups.items()]
+
+    def merge_tests(self) -> dict:
+        """The finished test parts merged into the run's test metrics: each metric from the part of its
+        family, plus CHECKPOINTS_KEY: {family: `checkpoint_info` + note + the metrics tested with it}."""
+        selections = self.checkpoints()
+        merged, checkpoints = {}, {}
+        for part in self.test_parts():
+            data = json.loads(part.metrics_path.read_text())
+            info = checkpoint_info(part.checkpoint)
+            for family in part.families:
+                names = [m for m in data if m != CHECKPOINT_KEY and metric_family(m) == family]
+                merged.update({m: data[m] for m in names})
+                checkpoints[family] = {**info, "note": selections[family].note, "metrics": names}
+        return {**merged, CHECKPOINTS_KEY: checkpoints}
 
 
 def load_sweep(name_or_path: str | Path, overrides: list[str] = ()) -> dict:
@@ -110,8 +205,16 @@ def runs_of(sweep: dict) -> list[Run]:
             for name, spec in sweep["models"].items() for seed in sweep["seeds"]]
 
 
+def checkpoints_markdown(checkpoints: dict[str, dict]) -> str:
+    """The "checkpoints" entry of a merged test (`Run.merge_tests`) as a markdown table."""
+    lines = ["| family | tested checkpoint | note |", "|---|---|---|"]
+    lines += [f"| {family} | {describe(info)} | {info.get('note') or ''} |" for family, info in checkpoints.items()]
+    return "\n".join(lines) + "\n"
+
+
 def execute(run: Run, threads: int | None = None, log=print) -> Run:
-    """fit (resuming a left-over last.ckpt) then test; a finished run is skipped."""
+    """fit (resuming a left-over last.ckpt) then the test parts, merged; a finished run is skipped,
+    and so is the fit once a test part has finished (the fit ended before the tests began)."""
     if run.finished:
         log(f"skip {run.model} seed {run.seed}: {run.metrics_path} exists")
         return run
@@ -120,14 +223,28 @@ def execute(run: Run, threads: int | None = None, log=print) -> Run:
         env["OMP_NUM_THREADS"] = str(threads)
     run.fit_dir.mkdir(parents=True, exist_ok=True)
     with open(run.output / run.model / f"seed_{run.seed}.log", "a") as out:
-        for step, command in (("fit", run.fit_command), ("test", run.test_command)):
+        def call(step: str, command: list[str]) -> None:
             log(f"{step} {run.model} seed {run.seed}")
-            result = subprocess.run(command(), stdout=out, stderr=subprocess.STDOUT, env=env)
+            result = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, env=env)
             if result.returncode != 0:
                 raise RuntimeError(f"{step} of {run.model} seed {run.seed} failed (exit {result.returncode}); "
                                    f"see {out.name}")
-    if not run.finished:
-        raise RuntimeError(f"test of {run.model} seed {run.seed} wrote no {run.metrics_path}")
+
+        if not any(run.test_dir.glob("*/test_metrics.json")):
+            call("fit", run.fit_command())
+        for part in run.test_parts():
+            if part.finished:
+                log(f"skip test {run.model} seed {run.seed} {part.checkpoint.name}: {part.metrics_path} exists")
+                continue
+            call(f"test ({', '.join(part.families)} with {part.checkpoint.name})", run.test_command(part))
+            if not part.finished:
+                raise RuntimeError(f"test of {run.model} seed {run.seed} wrote no {part.metrics_path}")
+    merged = run.merge_tests()
+    metrics = {name: value for name, value in merged.items() if name != CHECKPOINTS_KEY}
+    run.metrics_path.with_suffix(".md").write_text(
+        markdown_table(metrics, f"{run.model} seed {run.seed} test metrics") + "\n"
+        + checkpoints_markdown(merged[CHECKPOINTS_KEY]))
+    write_json(run.metrics_path, merged)
     return run
 
 
@@ -202,22 +319,30 @@ def _steps_logged(directory: Path) -> int | None:
     return max(steps) if steps else None
 
 
-def _training_markdown(runs: list[Run]) -> str:
-    """Per run: optimizer steps and epoch of the tested checkpoint, and the steps the fit logged."""
-    import torch
-
-    lines = ["| model | seed | tested checkpoint | its steps / epoch | largest logged step of the fit |", "|---|---|---|---|---|"]
-    for run in runs:
+def _training_markdown(runs: list[Run], results: list[RunResult]) -> str:
+    """Per run and metric family: the tested checkpoint (its step / epoch, what it was selected on,
+    any fallback) and the largest step the fit logged. Runs tested before per-family selection
+    recorded no checkpoints; theirs are found as they were chosen then (`Run.checkpoints`)."""
+    lines = ["| model | seed | family | tested checkpoint | its step / epoch | selected on | note | "
+             "largest logged step of the fit |", "|---|---|---|---|---|---|---|---|"]
+    for run, result in zip(runs, results):
         logged = _steps_logged(run.fit_dir)
         logged = "-" if logged is None else str(logged)
-        try:
-            tested = run.checkpoint()
-        except FileNotFoundError:  # checkpoints removed after testing
-            lines.append(f"| {run.model} | {run.seed} | (removed) | - | {logged} |")
-            continue
-        checkpoint = torch.load(tested, map_location="cpu", weights_only=False)
-        lines.append(f"| {run.model} | {run.seed} | {tested.name} | {checkpoint.get('global_step', '?')} / "
-                     f"{checkpoint.get('epoch', '?')} | {logged} |")
+        checkpoints = result.checkpoints
+        if not checkpoints:
+            try:
+                checkpoints = {family: {**checkpoint_info(sel.checkpoint), "note": "tested before per-family "
+                                        "selection (one checkpoint for every family)"}
+                               for family, sel in run.checkpoints().items()}
+            except FileNotFoundError:  # checkpoints removed after testing
+                lines.append(f"| {run.model} | {run.seed} | - | (removed) | - | - | - | {logged} |")
+                continue
+        for family, info in checkpoints.items():
+            selected = info.get("selected_on") or "-"
+            if info.get("score") is not None:
+                selected += f" = {info['score']:.4g}"
+            lines.append(f"| {run.model} | {run.seed} | {family} | {info['name']} | {info['global_step']} / "
+                         f"{info['epoch']} | {selected} | {info.get('note') or ''} | {logged} |")
     return "\n".join(lines) + "\n"
 
 
@@ -247,7 +372,8 @@ def summarize(sweep: dict, log=print) -> Path:
         except ValueError as error:
             lines += ["", f"Normalized benefit not computed: {error}"]
     lines += ["", "## The paper's findings on this sweep", "", findings_markdown(check_findings(table))]
-    lines += ["## Training of each run", "", _training_markdown(finished)]
+    lines += ["## Training of each run and the checkpoint each metric family was tested with", "",
+              _training_markdown(finished, results[:len(finished)])]
     lines += [f"![{figure.stem}]({figure.name})" for figure in write_figures(table, output)]
     path = output / "summary.md"
     path.write_text("\n".join(lines) + "\n")

@@ -6,6 +6,7 @@
               on windows of `window` steps with backpropagation through time
     MGN       MeshGraphNets: per-type encoders, one edge MLP per edge type, world edges, no points
     MGNM      MGN(M): MGN with the Poisson's ratio as a mesh node feature
+    MGNShared the authors' plate MGN: GGNS's shared processor on mesh and collider edges, no world edges
 
 A class fixes the model family (class attributes); its init args tune it. The model predicts
 the displacement x_{t+1} - x_t of every mesh node from the graph of state t (`TrajectoryBatch.
@@ -35,6 +36,7 @@ from ..graphs.connectivity import Connectivity, load_connectivity
 from ..graphs.state import TrajectoryBatch
 from ..graphs.types import MESH_EDGE
 from .core import EncodeProcessDecode, graph_features
+from .lr_schedule import scheduled_lr, validate_schedule
 from .normalization import DEFAULT_STD_FLOOR, Normalizer
 
 LstmState = tuple[Tensor, Tensor] | None
@@ -48,6 +50,9 @@ class GraphSimulator(pl.LightningModule):
         point_probability: chance that a training sample (a window for the LSTM) gets its point clouds.
         noise_std: std of the training noise on free input mesh positions (task-space units).
         lr: Adam learning rate (paper: 5e-4).
+        lr_final, lr_decay_rate, lr_decay_steps, lr_warmup_steps: schedule per optimizer step (`lr_schedule`):
+            lr_final + (lr - lr_final) * lr_decay_rate ** (step / lr_decay_steps), times a linear warm-up over
+            lr_warmup_steps; lr_decay_rate = 1 and no warm-up (the defaults) keep the paper's constant lr.
         window: transitions per training sample (backpropagation through time for the LSTM).
         eval_schedules: point-cloud schedules of the test rollouts ("every:K", "first:M", "never").
         test_m_plus_10, test_iou: also compute the m+10-step error and (2D) the IoU in `test`.
@@ -64,15 +69,17 @@ class GraphSimulator(pl.LightningModule):
                  mlp_layers: int = 1, point_probability: float = 0.5, noise_std: float = 0.01, lr: float = 5e-4,
                  window: int = 1, eval_schedules: tuple[str, ...] = ("every:1", "every:2", "every:5", "every:10", "never"),
                  test_m_plus_10: bool = True, test_iou: bool = True, statistics_batches: int | None = None,
-                 std_floor: float = DEFAULT_STD_FLOOR):
+                 std_floor: float = DEFAULT_STD_FLOOR, lr_final: float = 0.0, lr_decay_rate: float = 1.0,
+                 lr_decay_steps: int = 1, lr_warmup_steps: int = 0):
         super().__init__()
         self.save_hyperparameters()
+        validate_schedule(lr, lr_final, lr_decay_rate, lr_decay_steps, lr_warmup_steps)
         if dim not in (2, 3):
             raise ValueError(f"dim must be 2 or 3, got {dim}")
         if not 0.0 <= point_probability <= 1.0:
             raise ValueError(f"point_probability must lie in [0, 1], got {point_probability}")
-        if noise_std < 0 or lr <= 0 or window < 1:
-            raise ValueError(f"need noise_std >= 0, lr > 0 and window >= 1; got {noise_std}, {lr}, {window}")
+        if noise_std < 0 or window < 1:
+            raise ValueError(f"need noise_std >= 0 and window >= 1; got {noise_std}, {window}")
         self.connectivity: Connectivity = load_connectivity(connectivity)
         if point_probability > 0 and not self.connectivity.uses_points:
             raise ValueError(f"point_probability={point_probability} but connectivity {connectivity!r} has no point "
@@ -145,30 +152,57 @@ class GraphSimulator(pl.LightningModule):
             samples.append((graph, batch.positions[t + 1] - pos))
         return samples
 
-    def window_loss(self, batch: TrajectoryBatch, train: bool = True) -> Tensor:
-        """Mean over the window's transitions of the normalized-target MSE on free mesh nodes."""
+    def window_loss(self, batch: TrajectoryBatch, train: bool = True,
+                    by_points: bool = False) -> Tensor | tuple[Tensor, dict[str, Tensor]]:
+        """Mean over the window's transitions of the normalized-target MSE on free mesh nodes. by_points:
+        also {"points": ..., "no_points": ...}, the mean per-sample loss (one window's free nodes at one
+        transition) of the graphs with / without a point cloud, a group absent from the batch left out."""
         free = ~batch.fixed
         if not free.any():
             raise ValueError("batch has no free mesh nodes: nothing to train on")
-        state, losses = None, []
+        state, losses, samples, with_points = None, [], [], []
         for graph, target in self.training_graphs(batch, train):
             out, state = self.predict_normalized(graph, state)
-            losses.append((out[free] - self.target_normalizer(target[free])).square().mean())
+            squared = (out[free] - self.target_normalizer(target[free])).square()  # [free nodes, d]
+            losses.append(squared.mean())
+            if by_points:
+                error, owner = squared.mean(dim=1), batch.mesh_batch[free]
+                samples.append(error.new_zeros(batch.num_graphs).index_add_(0, owner, error)
+                               / torch.bincount(owner, minlength=batch.num_graphs).clamp(min=1))
+                has = torch.zeros(batch.num_graphs, dtype=torch.bool, device=error.device)
+                if "point" in graph.node_types:
+                    has[graph["point"].batch] = True
+                with_points.append(has)
         loss = torch.stack(losses).mean()
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite training loss {loss.item()} at global step {self.global_step}")
-        return loss
+        if not by_points:
+            return loss
+        samples, with_points = torch.cat(samples), torch.cat(with_points)
+        groups = {name: samples[mask].mean() for name, mask in (("points", with_points), ("no_points", ~with_points))
+                  if mask.any()}
+        return loss, groups
 
     def training_step(self, batch: TrajectoryBatch, batch_idx: int) -> Tensor:
-        loss = self.window_loss(batch, train=True)
+        loss, groups = self.window_loss(batch, train=True, by_points=True)
         self.log("train/loss", loss, batch_size=batch.num_graphs, prog_bar=True)
+        for name, value in groups.items():
+            self.log(f"train/loss_{name}", value.detach(), batch_size=batch.num_graphs)
         return loss
 
     def validation_step(self, batch: TrajectoryBatch, batch_idx: int) -> None:
         self.log("val/loss", self.window_loss(batch, train=False), batch_size=batch.num_graphs, prog_bar=True)
 
     def configure_optimizers(self):
-        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+        """Adam with the `lr_schedule` stepped after every optimizer step; its lr is logged as `train/lr`
+        (by the LearningRateMonitor that `ggns.cli` adds to every CLI fit with a logger)."""
+        h = self.hparams
+        optimizer = torch.optim.Adam(self.parameters(), lr=h.lr)
+        schedule = dict(lr=h.lr, lr_final=h.lr_final, decay_rate=h.lr_decay_rate, decay_steps=h.lr_decay_steps,
+                        warmup_steps=h.lr_warmup_steps)
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: scheduled_lr(step, **schedule) / h.lr)
+        return {"optimizer": optimizer,
+                "lr_scheduler": {"scheduler": scheduler, "interval": "step", "frequency": 1, "name": "train/lr"}}
 
     @torch.no_grad()
     def fit_normalizers(self, batches) -> int:
@@ -288,7 +322,18 @@ class MGNM(MGN):
     with_material = True
 
 
-MODELS = {"ggns": GGNS, "ggns_lstm": GGNSLSTM, "mgn": MGN, "mgn_m": MGNM}
+class MGNShared(GraphSimulator):
+    """The authors' own plate MGN baseline: GGNS's architecture (one-hot node and edge types into
+    shared encoders, one shared processor) on mesh and collider edges only, no world edges, no
+    point clouds. A second MGN row for a like-for-like comparison with the paper's numbers."""
+
+    def __init__(self, connectivity: str = "plate_mgn_shared", point_probability: float = 0.0,
+                 eval_schedules: tuple[str, ...] = ("never",), **kwargs):
+        super().__init__(connectivity=connectivity, point_probability=point_probability,
+                         eval_schedules=eval_schedules, **kwargs)
+
+
+MODELS = {"ggns": GGNS, "ggns_lstm": GGNSLSTM, "mgn": MGN, "mgn_m": MGNM, "mgn_shared": MGNShared}
 
 
 def load_simulator(path: str | Path, map_location=None) -> GraphSimulator:

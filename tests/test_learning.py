@@ -1,0 +1,152 @@
+"""`python -m ggns bench learning` (`ggns.experiments.learning`): the curve summaries on hand-made
+curves, and two tiny GGNS variants end to end (real subprocess fits of the Lightning CLI on
+plate_tiny with T = 12, a budget of 4 optimizer steps): table, CSV and figures, the logged lr, resume."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from conftest import TINY12
+from ggns.__main__ import main
+from ggns.config import CONF_DIR
+from ggns.experiments.learning import (CLOCK, COLUMNS, FINISHED, late_slope, load_learning, read_scalars,
+                                       run_learning, steps_to_threshold, variant_row, variant_runs)
+from ggns.models.lr_schedule import scheduled_lr
+
+
+def curve(steps, values, wall=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    steps = np.asarray(steps, dtype=float)
+    return steps, np.asarray(wall if wall is not None else steps, dtype=float), np.asarray(values, dtype=float)
+
+
+def test_steps_to_threshold_and_late_slope():
+    assert steps_to_threshold([10, 20, 30, 40], [0.9, 0.25, 0.2, 0.1], 0.2) == 30  # at the threshold counts
+    assert steps_to_threshold([10, 20, 30], [0.9, 0.1, 0.5], 0.2) == 20  # the first time, even if it goes back up
+    assert steps_to_threshold([10, 20], [0.9, 0.21], 0.2) is None and steps_to_threshold([], [], 0.2) is None
+    steps = np.arange(0, 4001, 500)
+    assert late_slope(steps, 10.0 ** (-steps / 1000)) == pytest.approx(-1.0)  # one decade per 1000 steps
+    # only the second half counts: a fall before step 2000, flat after
+    assert late_slope(steps, np.where(steps < 2000, 10.0 ** (-steps / 500), 1e-4)) == pytest.approx(0.0, abs=1e-12)
+    assert late_slope([100, 200], [1.0, 0.5]) is not None and late_slope([200], [1.0]) is None
+
+
+def test_variant_row_on_hand_made_curves():
+    """The clock maps steps to training seconds (validation excluded); the ratio first reaches 0.2 at
+    step 200, i.e. after 40 training seconds."""
+    scalars = {CLOCK: curve([100, 200, 300], [20.0, 40.0, 60.0]),
+               "val/one_step_ratio": curve([100, 200, 300], [0.5, 0.2, 0.15]),
+               "val/rollout_mse_never": curve([100, 200, 300], [1e-2, 1e-3, 1e-4]),
+               "train/loss": curve([99, 199, 299], [1.0, 0.5, 0.4])}
+    row = variant_row("a", ["--model.init_args.noise_std", "0.005"], scalars)
+    assert list(row) == list(COLUMNS)
+    assert row["change"] == "--model.init_args.noise_std 0.005" and row["steps"] == 300
+    assert row["train_seconds"] == 60.0 and row["steps_per_second"] == 5.0
+    assert (row["steps_to_ratio"], row["seconds_to_ratio"]) == (200, 40.0)
+    assert (row["best_one_step_ratio"], row["last_one_step_ratio"]) == (0.15, 0.15)
+    assert (row["rollout_mse_never_last"], row["rollout_mse_never_best"]) == (1e-4, 1e-4)
+    assert row["slope_never"] == pytest.approx(-10.0)  # two decades over the last 100 steps (150..300: 200, 300)
+    assert row["rollout_mse_k1_last"] is None and row["slope_k1"] is None  # no k=1 curve (MGN): n/a
+    assert (row["validations"], row["last_val_step"]) == (3, 300)
+    # without the clock: wall seconds, no steps/s
+    wall = {k: curve(s, v, wall=s / 10 + 1000) for k, (s, _, v) in scalars.items() if k != CLOCK}
+    row = variant_row("b", [], wall)
+    assert row["change"] == "(base)" and row["steps_per_second"] is None and row["train_seconds"] == pytest.approx(20.1)
+
+
+def write_learning(tmp_path, data_dir) -> str:
+    tiny = ["--data.dataset", str(data_dir / TINY12), "--data.data_dir", str(data_dir),
+            "--data.generate_missing", "false",
+            "--data.batch_size", "8", "--model.init_args.latent", "16", "--model.init_args.blocks", "2",
+            "--trainer.max_steps", "4", "--trainer.limit_val_batches", "1", "--trainer.log_every_n_steps", "1",
+            "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
+    spec = {"output": str(tmp_path / "learning"), "minutes": 5, "val_every": 2, "seed": 0, "parallel": 2,
+            "base": {"config": str(CONF_DIR / "plate" / "ggns.yaml"), "args": tiny},
+            "variants": {"paper": [], "decay": ["--model.init_args.lr_decay_rate", "0.5",
+                                                "--model.init_args.lr_decay_steps", "2"]}}
+    path = tmp_path / "learning.yaml"
+    path.write_text(yaml.safe_dump(spec, sort_keys=False))
+    return str(path)
+
+
+def test_two_tiny_variants_end_to_end_and_resume(cli_data, tmp_path):
+    spec = load_learning(write_learning(tmp_path, cli_data))
+    runs = variant_runs(spec)
+    assert [r.model for r in runs] == ["paper", "decay"]
+    assert "00:00:05:00" in runs[0].args and runs[1].args[-1] == "2"  # the budget first, the variant last
+    messages = []
+    report = run_learning(spec, log=messages.append)
+    output = tmp_path / "learning"
+    assert sorted(p.name for p in output.glob("*.png")) == ["curves_seconds.png", "curves_steps.png"]
+    with open(output / "learning.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["variant"] for r in rows] == ["paper", "decay"] and list(rows[0]) == list(COLUMNS)
+    for row in rows:
+        assert int(row["steps"]) == 4 and float(row["steps_per_second"]) > 0
+        assert 0 < float(row["train_seconds"]) < 300
+        assert int(row["validations"]) == 2 and int(row["last_val_step"]) == 4  # after steps 2 and 4
+        assert math.isfinite(float(row["rollout_mse_never_last"]))
+    text = report.read_text()
+    assert "Finished: 2 of 2 variants" in text and "| paper | `(base)` | 4 |" in text
+    assert "| decay | `--model.init_args.lr_decay_rate 0.5 --model.init_args.lr_decay_steps 2` | 4 |" in text
+    # the LearningRateMonitor of the CLI logged the scheduled lr of each of the 4 steps
+    steps, _, lrs = read_scalars(runs[1].fit_dir)["train/lr"]
+    assert steps.tolist() == [1, 2, 3, 4]
+    assert lrs.tolist() == pytest.approx([scheduled_lr(n - 1, 5e-4, 0.0, 0.5, 2) for n in range(1, 5)], rel=1e-6)
+    assert read_scalars(runs[0].fit_dir)["train/lr"][2].tolist() == pytest.approx([5e-4] * 4)  # the paper's constant lr
+
+    # resume: both finished variants are skipped, the report is rewritten
+    stamps = [(r.fit_dir / FINISHED).stat().st_mtime_ns for r in runs]
+    messages.clear()
+    run_learning(spec, log=messages.append)
+    assert sorted(m for m in messages if m.startswith(("skip", "fit"))) == [
+        f"skip {r.model}: {r.fit_dir / FINISHED} exists" for r in sorted(runs, key=lambda r: r.model)]
+    assert [(r.fit_dir / FINISHED).stat().st_mtime_ns for r in runs] == stamps
+    # a finished variant whose arguments changed is an error, not a silent skip
+    changed = load_learning(write_learning(tmp_path, cli_data), ["val_every=3"])
+    with pytest.raises(ValueError, match="finished with other arguments"):
+        run_learning(changed, only=["paper"])
+    # the command line: the report alone
+    (output / "learning.md").unlink()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(sys, "argv", ["ggns"])
+        main(["bench", "learning", "--config", str(tmp_path / "learning.yaml"), "--report-only"])
+    assert (output / "learning.md").read_text() == text
+    assert json.loads((runs[0].fit_dir / FINISHED).read_text())["args"] == list(runs[0].args)
+
+
+def test_bad_learning_files(tmp_path):
+    path = tmp_path / "bad.yaml"
+    good = {"output": "x", "minutes": 1, "val_every": 10, "base": {"config": str(CONF_DIR / "plate" / "mgn.yaml")},
+            "variants": {"a": []}}
+    for change, message in ((dict(variants={}), "at least one"), (dict(variants={"a": "--x"}), "list of CLI"),
+                            (dict(minutes=0), "minutes"), (dict(val_every=0), "val_every"),
+                            (dict(base={"config": "nope.yaml"}), "nope.yaml")):
+        path.write_text(yaml.safe_dump({**good, **change}))
+        with pytest.raises((ValueError, FileNotFoundError), match=message):
+            load_learning(path)
+    path.write_text(yaml.safe_dump(good))
+    with pytest.raises(ValueError, match=r"unknown variants \['b'\]"):
+        run_learning(load_learning(path), only=["b"])
+
+
+def test_the_shipped_learning_file_parses(tmp_path):
+    """Every variant of conf/learning/plate_ggns.yaml builds through the Lightning CLI (nothing is trained)."""
+    from ggns.cli import build_cli
+
+    spec = load_learning("plate_ggns", [f"output={tmp_path}"])
+    wanted = {"paper", "lr_decay", "noise_0.005", "noise_0.02", "latent64_blocks3", "batch_4", "batch_16"}
+    assert wanted <= set(spec["variants"])
+    for run in variant_runs(spec):
+        cli = build_cli(["--config", run.config, "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args],
+                        run=False)
+        assert cli.datamodule.hparams.dataset == "plate_small"
+        if run.model == "lr_decay":
+            assert cli.model.hparams.lr_decay_rate == 0.1
+        if run.model == "batch_4":
+            assert cli.datamodule.batch_size == 4 and cli.trainer.val_check_interval == 200

@@ -189,7 +189,7 @@ def test_slurm_script_has_one_task_per_run(tmp_path):
     sweep = load_sweep("plate", ["seeds=[0,1,2]"])
     script = slurm_script(sweep, "conf/sweeps/plate.yaml", partition="gpu")
     assert script.startswith("#!/bin/bash\n")
-    assert "#SBATCH --array=0-11" in script  # 4 models x 3 seeds
+    assert "#SBATCH --array=0-14" in script  # 5 models (the four and mgn_shared) x 3 seeds
     assert "#SBATCH --partition=gpu" in script and "#SBATCH --gres=gpu:1" in script
     assert "#SBATCH --signal=SIGUSR1@90" in script
     assert "python -m ggns sweep --config conf/sweeps/plate.yaml --task $SLURM_ARRAY_TASK_ID" in script

@@ -27,8 +27,9 @@ MODELS = ("ggns", "mgn")
 
 def train_and_test(name: str, output: Path, preset: str, minutes: float, test_trajectories: int = 9,
                    extra: list[str] = ()) -> dict:
-    """Fit conf/plate/<name>.yaml for at most `minutes`, then test its best checkpoint on the
-    first `test_trajectories` test trajectories."""
+    """Fit conf/plate/<name>.yaml for at most `minutes`, then test the checkpoint of its first
+    ModelCheckpoint (the best full rollout: k=1 for GGNS, never for MGN) on the first
+    `test_trajectories` test trajectories."""
     seconds = int(round(minutes * 60))
     args = ["--config", str(CONF_DIR / "plate" / f"{name}.yaml"), "--data.dataset", preset,
             "--trainer.max_time", f"00:{seconds // 3600:02d}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}",
@@ -68,7 +69,8 @@ def write_report(runs: list[dict], path: Path, figures: list[Path], preset: str,
         "# Main job report: GGNS vs. MGN on the small Deformable Plate dataset", "",
         f"Data preset `{preset}`; each model trained for at most {minutes:g} min of wall-clock time on this "
         f"machine (paper-size models, far shorter than the paper's training), then tested on the first "
-        f"{test_trajectories} test trajectories with the checkpoint that had the best validation rollout MSE. Values: mean ± std over test trajectories; "
+        f"{test_trajectories} test trajectories with the checkpoint that had the best validation rollout MSE "
+        "(GGNS: a point cloud every step; MGN: none; the table below names it). Values: mean ± std over test trajectories; "
         "MSEs in squared task-space units; `k<K>`: a point cloud every K steps, `never`: none after the initial "
         "state. MGN never sees point clouds, so only its `never` rollout exists.", "",
         "| metric | " + " | ".join(names) + " |", "|---|" + "---|" * len(names),

@@ -38,6 +38,7 @@ from ..graphs.types import MESH_EDGE
 from .core import EncodeProcessDecode, graph_features
 from .lr_schedule import scheduled_lr, validate_schedule
 from .normalization import DEFAULT_STD_FLOOR, Normalizer
+from .training_noise import smooth_field
 
 LstmState = tuple[Tensor, Tensor] | None
 
@@ -49,6 +50,8 @@ class GraphSimulator(pl.LightningModule):
         latent, blocks, mlp_layers: core size (paper: 128, 5, 1).
         point_probability: chance that a training sample (a window for the LSTM) gets its point clouds.
         noise_std: std of the training noise on free input mesh positions (task-space units).
+        noise_field_std, noise_field_wavelength: std and wavelength of a smooth random displacement field
+            added on top (`training_noise.smooth_field`; 0, the default, is the paper's noise alone).
         lr: Adam learning rate (paper: 5e-4).
         lr_final, lr_decay_rate, lr_decay_steps, lr_warmup_steps: schedule per optimizer step (`lr_schedule`):
             lr_final + (lr - lr_final) * lr_decay_rate ** (step / lr_decay_steps), times a linear warm-up over
@@ -70,7 +73,8 @@ class GraphSimulator(pl.LightningModule):
                  window: int = 1, eval_schedules: tuple[str, ...] = ("every:1", "every:2", "every:5", "every:10", "never"),
                  test_m_plus_10: bool = True, test_iou: bool = True, statistics_batches: int | None = None,
                  std_floor: float = DEFAULT_STD_FLOOR, lr_final: float = 0.0, lr_decay_rate: float = 1.0,
-                 lr_decay_steps: int = 1, lr_warmup_steps: int = 0):
+                 lr_decay_steps: int = 1, lr_warmup_steps: int = 0, noise_field_std: float = 0.0,
+                 noise_field_wavelength: float = 4.0):
         super().__init__()
         self.save_hyperparameters()
         validate_schedule(lr, lr_final, lr_decay_rate, lr_decay_steps, lr_warmup_steps)
@@ -78,8 +82,9 @@ class GraphSimulator(pl.LightningModule):
             raise ValueError(f"dim must be 2 or 3, got {dim}")
         if not 0.0 <= point_probability <= 1.0:
             raise ValueError(f"point_probability must lie in [0, 1], got {point_probability}")
-        if noise_std < 0 or window < 1:
-            raise ValueError(f"need noise_std >= 0 and window >= 1; got {noise_std}, {window}")
+        if noise_std < 0 or noise_field_std < 0 or noise_field_wavelength <= 0 or window < 1:
+            raise ValueError(f"need noise_std >= 0, noise_field_std >= 0, noise_field_wavelength > 0 and window >= 1; "
+                             f"got {noise_std}, {noise_field_std}, {noise_field_wavelength}, {window}")
         self.connectivity: Connectivity = load_connectivity(connectivity)
         if point_probability > 0 and not self.connectivity.uses_points:
             raise ValueError(f"point_probability={point_probability} but connectivity {connectivity!r} has no point "
@@ -148,6 +153,10 @@ class GraphSimulator(pl.LightningModule):
             pos = batch.positions[t]
             if train and self.hparams.noise_std > 0:
                 pos = pos + torch.randn_like(pos) * self.hparams.noise_std * free
+            if train and self.hparams.noise_field_std > 0:
+                field = smooth_field(batch.rest, batch.mesh_batch, batch.num_graphs, self.hparams.noise_field_std,
+                                     self.hparams.noise_field_wavelength)
+                pos = pos + field * free
             graph = batch.graph(t, pos, use_points, self.connectivity, self.with_material)
             samples.append((graph, batch.positions[t + 1] - pos))
         return samples

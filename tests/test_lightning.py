@@ -630,3 +630,20 @@ def test_cli_mgn_fit_and_test(cli_data, tmp_path):
     assert first["schedule"] == "never" and len(first["node_offsets"]) == 3
     positions = first["positions"]
     assert positions.shape[1:] == (first["node_offsets"][-1], 2) and torch.isfinite(positions).all()
+
+
+def test_noise_field_moves_free_nodes_smoothly_and_is_refused_when_negative(trajs):
+    """`noise_field_std`: training inputs get a smooth field on the free nodes (fixed ones stay), the
+    target is corrected by it (x_{t+1} - noisy x_t); evaluation inputs get none; a negative std is refused."""
+    batch = collate([WindowDataset(trajs["train"], 1)[0]])
+    model = make(GGNS, noise_std=0.0, noise_field_std=0.05)
+    torch.manual_seed(0)
+    (graph, target), = model.training_graphs(batch, train=True)
+    moved = graph["mesh"].pos - batch.positions[0]
+    assert torch.equal(moved[batch.fixed], torch.zeros_like(moved[batch.fixed]))
+    assert 0.005 < moved[~batch.fixed].std().item() < 0.5
+    torch.testing.assert_close(target, batch.positions[1] - graph["mesh"].pos)
+    (clean, _), = model.training_graphs(batch, train=False)
+    assert torch.equal(clean["mesh"].pos, batch.positions[0])
+    with pytest.raises(ValueError, match="noise_field_std >= 0"):
+        make(GGNS, noise_field_std=-0.1)

@@ -50,8 +50,9 @@ class GraphSimulator(pl.LightningModule):
         latent, blocks, mlp_layers: core size (paper: 128, 5, 1).
         point_probability: chance that a training sample (a window for the LSTM) gets its point clouds.
         noise_std: std of the training noise on free input mesh positions (task-space units).
-        noise_field_std, noise_field_wavelength: std and wavelength of a smooth random displacement field
-            added on top (`training_noise.smooth_field`; 0, the default, is the paper's noise alone).
+        noise_field_std, noise_field_wavelength, noise_field_mixture: std, wavelength and per-graph scale
+            mixture of a smooth random displacement field added on top (`training_noise.smooth_field`;
+            std 0, the default, is the paper's noise alone).
         lr: Adam learning rate (paper: 5e-4).
         lr_final, lr_decay_rate, lr_decay_steps, lr_warmup_steps: schedule per optimizer step (`lr_schedule`):
             lr_final + (lr - lr_final) * lr_decay_rate ** (step / lr_decay_steps), times a linear warm-up over
@@ -74,7 +75,7 @@ class GraphSimulator(pl.LightningModule):
                  test_m_plus_10: bool = True, test_iou: bool = True, statistics_batches: int | None = None,
                  std_floor: float = DEFAULT_STD_FLOOR, lr_final: float = 0.0, lr_decay_rate: float = 1.0,
                  lr_decay_steps: int = 1, lr_warmup_steps: int = 0, noise_field_std: float = 0.0,
-                 noise_field_wavelength: float = 4.0):
+                 noise_field_wavelength: float = 4.0, noise_field_mixture: bool = False):
         super().__init__()
         self.save_hyperparameters()
         validate_schedule(lr, lr_final, lr_decay_rate, lr_decay_steps, lr_warmup_steps)
@@ -155,7 +156,8 @@ class GraphSimulator(pl.LightningModule):
                 pos = pos + torch.randn_like(pos) * self.hparams.noise_std * free
             if train and self.hparams.noise_field_std > 0:
                 field = smooth_field(batch.rest, batch.mesh_batch, batch.num_graphs, self.hparams.noise_field_std,
-                                     self.hparams.noise_field_wavelength)
+                                     self.hparams.noise_field_wavelength,
+                                     mixture=self.hparams.noise_field_mixture)
                 pos = pos + field * free
             graph = batch.graph(t, pos, use_points, self.connectivity, self.with_material)
             samples.append((graph, batch.positions[t + 1] - pos))

@@ -16,11 +16,13 @@ from torch import Tensor
 
 
 def smooth_field(rest: Tensor, owner: Tensor, num_graphs: int, std: float, wavelength: float,
-                 waves: int = 4) -> Tensor:
+                 waves: int = 4, mixture: bool = False) -> Tensor:
     """A random smooth displacement per node [N, d]: for every graph and output coordinate, a sum of
     `waves` sinusoids of the rest position with wave vectors ~ N(0, (2 pi / wavelength)^2 I), random
     phases and N(0, 2 / waves) amplitudes, so that each coordinate has standard deviation `std`
-    over draws. rest [N, d]; owner [N] long, the graph of each node."""
+    over draws. mixture: each graph's field is scaled by u ~ U(0, sqrt 3) (same overall std), so that
+    small offsets, which a rollout with frequent point clouds mostly has, are drawn often.
+    rest [N, d]; owner [N] long, the graph of each node."""
     if std < 0 or wavelength <= 0 or waves < 1:
         raise ValueError(f"need std >= 0, wavelength > 0 and waves >= 1; got {std}, {wavelength}, {waves}")
     n, d = rest.shape
@@ -31,4 +33,7 @@ def smooth_field(rest: Tensor, owner: Tensor, num_graphs: int, std: float, wavel
     phase = torch.rand(num_graphs, d, waves, **options) * (2 * math.pi)
     amplitude = torch.randn(num_graphs, d, waves, **options) * math.sqrt(2.0 / waves)
     angle = torch.einsum("nowi,ni->now", omega[owner], rest) + phase[owner]  # [N, out d, wave]
-    return std * (amplitude[owner] * torch.sin(angle)).sum(dim=-1)
+    field = std * (amplitude[owner] * torch.sin(angle)).sum(dim=-1)
+    if mixture:
+        field = field * (torch.rand(num_graphs, **options) * math.sqrt(3.0))[owner, None]
+    return field

@@ -13,7 +13,7 @@ import yaml
 
 from ggns.config import CONF_DIR
 from ggns.experiments.baselines import GENERATED_MESH_FILE, baseline_spec, run_baselines
-from ggns.experiments.sweep import Run, load_sweep, run_sweep, runs_of, slurm_script, summarize
+from ggns.experiments.sweep import Run, load_sweep, prepare_datasets, run_sweep, runs_of, slurm_script, summarize
 from conftest import TINY12
 
 
@@ -208,3 +208,18 @@ def test_every_run_of_every_sweep_preset_parses(preset, tmp_path):
                 "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
         cli = build_cli(argv, run=False)
         assert cli.model.hparams.connectivity.startswith("plate_")
+
+
+def test_missing_datasets_are_generated_once_before_parallel_runs(cli_data, tmp_path):
+    """`prepare_datasets` generates the split files the runs need into the directory they name, once
+    for runs sharing a dataset; a second call finds them and generates nothing."""
+    empty = tmp_path / "data"
+    args = ("--data.dataset", str(cli_data / TINY12), "--data.data_dir", str(empty))
+    runs = [Run("mgn", seed, str(CONF_DIR / "plate" / "mgn.yaml"), args, tmp_path / "sweep") for seed in (0, 1)]
+    messages = []
+    assert prepare_datasets(runs, messages.append) == [str(cli_data / TINY12)]
+    assert len(messages) == 1 and "generate" in messages[0]
+    assert all((empty / f"{split}.h5").is_file() for split in ("train", "val", "test"))
+    messages.clear()
+    prepare_datasets(runs, messages.append)
+    assert messages == []

@@ -26,6 +26,7 @@ stopped. `summarize` aggregates the finished runs into <output>/summary.{md,csv}
 """
 from __future__ import annotations
 
+import inspect
 import json
 import os
 import subprocess
@@ -37,6 +38,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from ..config import resolve_preset
+from ..data.module import SPLITS, SimulationDataModule
 from ..evaluation.evaluate import markdown_table, schedule_key
 from ..evaluation.schedules import parse_schedule
 from ..evaluation.selection import (CHECKPOINT_KEY, CHECKPOINTS_KEY, FAMILY_CHECKPOINT, M10, ONE_STEP, candidates,
@@ -248,13 +250,47 @@ def execute(run: Run, threads: int | None = None, log=print) -> Run:
     return run
 
 
+def _option(args: tuple[str, ...], name: str) -> str | None:
+    """The value of the last `name VALUE` or `name=VALUE` among CLI arguments (None if absent)."""
+    value = None
+    for i, arg in enumerate(args):
+        if arg == name and i + 1 < len(args):
+            value = args[i + 1]
+        elif arg.startswith(name + "="):
+            value = arg.split("=", 1)[1]
+    return value
+
+
+def prepare_datasets(runs: list[Run], log=print) -> list[str]:
+    """Generate the missing split files of every dataset the runs name (`--data.dataset`, `--data.data_dir`),
+    once, before runs start in parallel: otherwise each run would generate the same files at once,
+    and inside its fit's wall-clock budget. Returns the datasets checked."""
+    checked = []
+    def dataset_of(run: Run) -> str:
+        named = _option(run.args, "--data.dataset")
+        if named is None:  # the Lightning config's, else the data module's default
+            named = (OmegaConf.load(run.config).get("data") or {}).get("dataset")
+        return named or inspect.signature(SimulationDataModule).parameters["dataset"].default
+
+    for dataset, data_dir in dict.fromkeys((dataset_of(r), _option(r.args, "--data.data_dir")) for r in runs):
+        module = SimulationDataModule(dataset=dataset, data_dir=data_dir)
+        missing = [s for s in SPLITS if not module.path(s).exists()]
+        if missing:
+            log(f"generate {dataset} {missing} into {module.data_dir}")
+            module.prepare_data()
+        checked.append(dataset)
+    return checked
+
+
 def run_sweep(sweep: dict, task: int | None = None, log=print) -> list[Run]:
-    """All runs (`parallel` at once) or only job-array task `task`. Returns the runs executed."""
+    """All runs (`parallel` at once, after `prepare_datasets`) or only job-array task `task`. Returns the
+    runs executed."""
     runs = runs_of(sweep)
     if task is not None:
         if not 0 <= task < len(runs):
             raise IndexError(f"task {task} outside the sweep's {len(runs)} runs")
         return [execute(runs[task], log=log)]
+    prepare_datasets([r for r in runs if not r.finished], log)
     parallel = max(1, int(sweep.get("parallel", 1)))
     threads = max(1, (os.cpu_count() or 1) // parallel)
     with ThreadPoolExecutor(parallel) as pool:

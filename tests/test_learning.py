@@ -53,6 +53,14 @@ def test_variant_row_on_hand_made_curves():
     assert row["slope_never"] == pytest.approx(-10.0)  # two decades over the last 100 steps (150..300: 200, 300)
     assert row["rollout_mse_k1_last"] is None and row["slope_k1"] is None  # no k=1 curve (MGN): n/a
     assert (row["validations"], row["last_val_step"]) == (3, 300)
+    assert row["m10_mse_best"] is None and row["loss_points_late"] is None  # not logged: n/a
+    # m+10 and the late training loss with / without point clouds (mean over the last 1000 steps)
+    late = {"val/m10_mse": curve([100, 200, 300], [3e-3, 1e-3, 2e-3]),
+            "train/loss_points": curve(np.arange(0, 3000, 500), [9.0, 9.0, 9.0, 9.0, 0.2, 0.4]),
+            "train/loss_no_points": curve(np.arange(0, 3000, 500), [9.0, 9.0, 9.0, 9.0, 0.6, 0.6])}
+    row = variant_row("a", [], {**scalars, **late})
+    assert (row["m10_mse_last"], row["m10_mse_best"]) == (2e-3, 1e-3)
+    assert row["loss_points_late"] == pytest.approx(0.3) and row["loss_no_points_late"] == pytest.approx(0.6)
     # without the clock: wall seconds, no steps/s
     wall = {k: curve(s, v, wall=s / 10 + 1000) for k, (s, _, v) in scalars.items() if k != CLOCK}
     row = variant_row("b", [], wall)

@@ -39,15 +39,16 @@ from ..config import resolve_preset
 from .sweep import Run
 
 # the curves drawn, in panel order; a variant lacking one (e.g. MGN: no point clouds) leaves it out
-CURVES = ("val/one_step_ratio", "val/rollout_mse_k1", "val/rollout_mse_never", "train/loss_points",
-          "train/loss_no_points", "train/loss", "train/lr")
+CURVES = ("val/one_step_ratio", "val/rollout_mse_k1", "val/rollout_mse_never", "val/m10_mse", "train/loss_points",
+          "train/loss_no_points", "train/lr")
 CLOCK = "time/train_seconds"
 RATIO_THRESHOLD = 0.2  # one-step MSE / zero-motion MSE that counts as "learned to move"
 FINISHED = "learning_finished.json"
 COLUMNS = ("variant", "change", "steps", "train_seconds", "steps_per_second", "steps_to_ratio",
            "seconds_to_ratio", "best_one_step_ratio", "last_one_step_ratio", "validations", "last_val_step",
            "rollout_mse_k1_last", "rollout_mse_k1_best", "rollout_mse_never_last", "rollout_mse_never_best",
-           "slope_k1", "slope_never")
+           "slope_k1", "slope_never", "m10_mse_last", "m10_mse_best", "loss_points_late", "loss_no_points_late")
+LATE_STEPS = 1000  # the training loss with / without point clouds is averaged over the last this many steps
 
 
 class TrainingClock(pl.Callback):
@@ -255,6 +256,13 @@ def variant_row(name: str, args: Sequence[str], scalars: dict, threshold: float 
                         f"slope_{key}": late_slope(steps, mse)})
             row["validations"] = row["validations"] or len(steps)
             row["last_val_step"] = row["last_val_step"] or int(steps[-1])
+    if "val/m10_mse" in scalars:
+        mse = scalars["val/m10_mse"][2]
+        row.update(m10_mse_last=float(mse[-1]), m10_mse_best=float(mse.min()))
+    for key in ("points", "no_points"):
+        if f"train/loss_{key}" in scalars:
+            steps, _, loss = scalars[f"train/loss_{key}"]
+            row[f"loss_{key}_late"] = float(loss[steps > steps.max() - LATE_STEPS].mean())
     return row
 
 
@@ -271,7 +279,8 @@ def markdown_rows(rows: list[dict], threshold: float = RATIO_THRESHOLD) -> str:
     """The markdown table of `variant_row`s."""
     head = ["variant", "change", "steps", "train s", "steps/s", f"one-step ratio <= {threshold}: step (s)",
             "one-step ratio best / last", "rollout MSE k=1 last / best", "rollout MSE never last / best",
-            "slope k=1", "slope never", "validations (last at step)"]
+            "m+10 MSE last / best", "slope k=1", "slope never", f"train loss with / without points (last {LATE_STEPS} steps)",
+            "validations (last at step)"]
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for r in rows:
         if r["steps_to_ratio"] is not None:
@@ -285,7 +294,9 @@ def markdown_rows(rows: list[dict], threshold: float = RATIO_THRESHOLD) -> str:
                  f"{_cell(r['best_one_step_ratio'])} / {_cell(r['last_one_step_ratio'])}",
                  f"{_cell(r['rollout_mse_k1_last'])} / {_cell(r['rollout_mse_k1_best'])}",
                  f"{_cell(r['rollout_mse_never_last'])} / {_cell(r['rollout_mse_never_best'])}",
+                 f"{_cell(r['m10_mse_last'])} / {_cell(r['m10_mse_best'])}",
                  _cell(r["slope_k1"], "+.2f"), _cell(r["slope_never"], "+.2f"),
+                 f"{_cell(r['loss_points_late'])} / {_cell(r['loss_no_points_late'])}",
                  f"{_cell(r['validations'])} ({_cell(r['last_val_step'])})"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
@@ -350,7 +361,9 @@ def write_report(spec: dict, log=print) -> Path:
              f". One-step ratio: `val/one_step_ratio`, the one-step MSE over the zero-motion MSE; the step (and "
              f"training seconds) of the first validation at or below {RATIO_THRESHOLD}. Rollout MSE at the last "
              "validation / the best one. Slope: log10 rollout MSE per 1000 steps, least squares over the "
-             "validations in the second half of the steps (negative: still falling). n/a: not logged.", "",
+             "validations in the second half of the steps (negative: still falling). m+10: `val/m10_mse`. Train loss: "
+             f"the normalized training loss of graphs with / without a point cloud, mean of the values logged in "
+             f"the last {LATE_STEPS} optimizer steps. n/a: not logged.", "",
              markdown_rows(rows)] + [f"![{p.stem}]({p.name})" for p in figures]
     path = output / "learning.md"
     path.write_text("\n".join(lines) + "\n")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 
-from ggns.experiments.findings import check_findings, findings_markdown
+from ggns.experiments.findings import check_findings, check_targets, findings_markdown
 
 
 def stat(mean, std=0.0):
@@ -71,3 +71,24 @@ def test_missing_models_are_not_checked_never_held():
     findings = check_findings(t)
     assert [f.holds for f in findings] == [None] * 5
     assert "missing" in findings[0].evidence and "not checked" in findings_markdown(findings)
+
+
+def test_targets_hold_and_fail():
+    t = paper_like()
+    t["ggns"]["rollout_mse_never"] = stat(2e-3)
+    t["static"] = {}
+    for model, value in (("ggns", 1e-6), ("ggns_lstm", 2e-6), ("mgn_m", 1e-6), ("mgn", 2e-6), ("static", 1e-5)):
+        t[model]["one_step_mse"] = stat(value)
+    t["alpha_shapes"] = {"rollout_iou_k1": stat(0.9)}
+    targets = check_targets(t)
+    assert [f.holds for f in targets] == [True] * 3
+    assert "ggns 0.1" in targets[0].evidence and "static 1" not in targets[0].evidence  # the reference is no model
+    assert "50.00x" in targets[2].evidence  # 5e-3 / 1e-4
+    assert findings_markdown(targets, head="target").startswith("| target |")
+    t["mgn"]["one_step_mse"] = stat(3e-6)  # 0.3x no motion
+    t["ggns"]["rollout_mse_never"] = stat(8e-4)  # below k = 10
+    t["mgn"]["rollout_mse_never"] = stat(9e-4)  # 9x GGNS k = 1
+    assert [f.holds for f in check_targets(t)] == [False] * 3
+    del t["static"]
+    assert check_targets(t)[0].holds is None
+    assert [f.holds for f in check_targets({})] == [None] * 3

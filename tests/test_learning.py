@@ -15,8 +15,8 @@ import yaml
 from conftest import TINY12
 from ggns.__main__ import main
 from ggns.config import CONF_DIR
-from ggns.experiments.learning import (CLOCK, COLUMNS, FINISHED, late_slope, load_learning, read_scalars,
-                                       run_learning, steps_to_threshold, variant_row, variant_runs)
+from ggns.experiments.curves import CLOCK, COLUMNS, late_slope, read_scalars, steps_to_threshold, variant_row
+from ggns.experiments.learning import FINISHED, load_learning, run_learning, variant_runs
 from ggns.models.lr_schedule import scheduled_lr
 
 

@@ -32,12 +32,12 @@ from ggns.evaluation.rollout import RolloutError, rollout
 from ggns.evaluation.schedules import EveryK, FirstM, Never
 from ggns.evaluation.selection import val_metric
 from ggns.graphs.state import TrajectoryBatch
-from ggns.models.simulators import GGNS, GGNSLSTM, MGN, MGNM, MGNShared
+from ggns.models.simulators import GGNS, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared
 from conftest import TINY12
 
 T = 8  # states per plate_tiny trajectory
 SMALL = dict(latent=16, blocks=2)
-ALL_MODELS = (GGNS, GGNSLSTM, MGN, MGNM, MGNShared)
+ALL_MODELS = (GGNS, GGNSLSTM, MGN, MGNM, MGNShared, GGNSM)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -93,7 +93,7 @@ def test_step_returns_a_finite_displacement_per_mesh_node(cls, val_batch):
     with torch.no_grad():
         displacement, state = model.step(graph, None)
     assert displacement.shape == (n, 2) and torch.isfinite(displacement).all()
-    assert graph["mesh"].x.shape == (n, 2 if cls is MGNM else 1)
+    assert graph["mesh"].x.shape == (n, 2 if cls in (MGNM, GGNSM) else 1)
     if cls is GGNSLSTM:
         h, c = state
         assert h.shape == c.shape == (n, 16)
@@ -138,6 +138,19 @@ def test_mgn_graphs_never_hold_points(cls, val_batch):
     assert "point" not in graph.node_types
     if cls is MGNM:
         assert torch.equal(graph["mesh"].x[:, 1], val_batch.material[val_batch.mesh_batch])
+
+
+def test_ggns_m_is_ggns_given_the_material(val_batch):
+    """The ablation GGNS(M): GGNS's graphs with points, plus the Poisson ratio as a mesh feature that
+    the prediction depends on."""
+    model = make(GGNSM)
+    assert model.uses_points and model.with_material
+    graph = first_graph(model, val_batch, True)
+    assert "point" in graph.node_types
+    assert torch.equal(graph["mesh"].x[:, 1], val_batch.material[val_batch.mesh_batch])
+    other = first_graph(model, dataclasses.replace(val_batch, material=-val_batch.material), True)
+    with torch.no_grad():
+        assert not torch.allclose(model.step(graph)[0], model.step(other)[0])
 
 
 # ---- 2. translation invariance ---------------------------------------------------------------------

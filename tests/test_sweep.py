@@ -103,6 +103,7 @@ def test_two_seed_sweep_runs_skips_and_resumes(cli_data, tmp_path):
     static = json.loads((runs[0].output / "static" / "test_metrics.json").read_text())
     assert static["rollout_mse_never"]["count"] == 2 and static["rollout_mse_never"]["mean"] > 0
     assert 0.0 < static["rollout_iou_never"]["mean"] < 1.0  # the plate moves, so holding S_0 loses overlap
+    assert static["one_step_mse"]["count"] == 2 and static["one_step_mse"]["mean"] > 0  # no motion, one step
     alpha = json.loads((runs[0].output / "alpha_shapes" / "test_metrics.json").read_text())
     generated = json.loads((runs[0].test_dir / GENERATED_MESH_FILE).read_text())
     for metrics in (alpha, generated):
@@ -121,6 +122,12 @@ def test_two_seed_sweep_runs_skips_and_resumes(cli_data, tmp_path):
     assert f"| mgn | 1 | never | {never.name} | {step} / " in summary
     assert f"| mgn | 1 | one_step | {never.name} | {step} / " in summary
     assert summary.count("val/rollout_mse_never = ") == 4  # never and one_step of both runs
+    # the targets, with the static row as the no-motion reference, and each run's learning curves
+    assert "## The project's targets on this sweep" in summary and "(no motion: " in summary
+    assert "## Learning curves of each run" in summary and "learning_curves.png" in summary
+    assert (runs[0].output / "learning_curves.png").is_file()
+    (row,) = [line for line in summary.splitlines() if line.startswith("| mgn seed 1 |")]
+    assert int(row.split("|")[2]) == 4  # the fit's optimizer steps: 2 epochs x 2 batches
     csv_text = (runs[0].output / "summary.csv").read_text()
     assert "mgn,rollout_mse_never," in csv_text and "mgn,generated_mesh_iou_never," in csv_text
     assert "alpha_shapes,generated_mesh_iou_k1," in csv_text

@@ -72,17 +72,23 @@ def alpha_shapes_metrics(trajectories) -> dict[str, dict[str, float]]:
 
 
 def static_metrics(trajectories) -> dict[str, dict[str, float]]:
-    """The mesh held at S_0 for every step, scored like a rollout without point clouds."""
+    """The mesh held at S_0 for every step, scored like a rollout without point clouds, and the
+    one-step MSE of predicting no motion (S_t predicted as the true S_{t-1}): the reference that
+    a model's one-step MSE is compared with (`one_step_mse` of this row)."""
+    from ..evaluation.evaluate import zero_motion_one_step_mse
     from ..evaluation.metrics import batch_iou, rollout_mse
+    from ..graphs.state import TrajectoryBatch
 
-    mse, iou = [], []
+    mse, iou, one_step = [], [], []
     for traj in trajectories:
         true = torch.as_tensor(np.asarray(traj.positions, dtype=np.float64))[None]  # [1, T, N, d]
         held = true[:, :1].expand_as(true)
         mse.append(rollout_mse(held, true)[0])
         if traj.dim == 2:
             iou.append(batch_iou(held, true, traj.cells)[0, 1:].mean().item())
-    return _summary({"rollout_mse_never": mse, **({"rollout_iou_never": iou} if iou else {})})
+        one_step.append(zero_motion_one_step_mse(TrajectoryBatch.from_trajectories([traj], dtype=torch.float64))[0])
+    return _summary({"rollout_mse_never": mse, "one_step_mse": [float(v) for v in one_step],
+                     **({"rollout_iou_never": iou} if iou else {})})
 
 
 def generated_mesh_metrics(model, trajectories, schedules=None) -> dict[str, dict[str, float]]:

@@ -13,6 +13,12 @@ checked (holds=None), never as holding. The checks are our reading of the paper'
 5. GGNS+LSTM is not better than GGNS: at every k both have, the LSTM's mean is not below the
    GGNS mean by more than the larger of their seed stds (a difference inside the seed spread
    does not count as better).
+
+`check_targets` checks the stricter targets this project sets its plate sweeps (the paper's plate
+shows each of them): every model's one-step MSE at most 0.2x that of predicting no motion (the
+`static` baseline row's `one_step_mse`, computed on the same test trajectories); GGNS's rollout
+MSE falling as point clouds come more often, k=1 < k=2 < k=5 < k=10 < never; GGNS k=1 at least
+10x below MGN.
 """
 from __future__ import annotations
 
@@ -96,7 +102,39 @@ def _lstm_finding(table: Table, ks) -> Finding:
     return Finding("GGNS+LSTM not better than GGNS", not better, evidence)
 
 
-def findings_markdown(findings: list[Finding]) -> str:
-    lines = ["| paper finding | on this sweep | numbers (seed means) |", "|---|---|---|"]
+ONE_STEP_RATIO_TARGET = 0.2
+RATIO_TARGET = 10.0
+BASELINE_MODELS = ("static", "alpha_shapes")  # rows of the table that are not learned models
+
+
+def check_targets(table: Table, ks=(1, 2, 5, 10)) -> list[Finding]:
+    """The three targets of the module docstring, in that order."""
+    targets = []
+    claim = f"one-step MSE of every model at most {ONE_STEP_RATIO_TARGET}x predicting no motion"
+    zero = _get(table, "static", "one_step_mse")
+    models = [m for m in table if m not in BASELINE_MODELS and _get(table, m, "one_step_mse")]
+    if zero is None or not models or not zero["mean"] > 0:
+        targets.append(Finding(claim, None, "missing: the static row's one_step_mse or a model's one_step_mse"))
+    else:
+        ratios = {m: table[m]["one_step_mse"]["mean"] / zero["mean"] for m in models}
+        targets.append(Finding(claim, all(r <= ONE_STEP_RATIO_TARGET for r in ratios.values()),
+                               ", ".join(f"{m} {r:.3g}" for m, r in ratios.items()) +
+                               f" (no motion: {zero['mean']:.3g})"))
+    holds, ev = _chain(table, [(f"k={k}", "ggns", f"rollout_mse_k{k}") for k in ks] +
+                       [("never", "ggns", "rollout_mse_never")])
+    targets.append(Finding("GGNS rollout MSE: " + " < ".join([f"k={k}" for k in ks] + ["never"]), holds, ev))
+    k1, mgn = _get(table, "ggns", "rollout_mse_k1"), _get(table, "mgn", "rollout_mse_never")
+    claim = f"GGNS k=1 at least {RATIO_TARGET:g}x below MGN"
+    if k1 is None or mgn is None:
+        targets.append(Finding(claim, None, "missing: GGNS k=1 or MGN"))
+    else:
+        ratio = mgn["mean"] / k1["mean"] if k1["mean"] > 0 else math.inf
+        targets.append(Finding(claim, ratio >= RATIO_TARGET,
+                               f"MGN / GGNS k=1 = {mgn['mean']:.3g} / {k1['mean']:.3g} = {ratio:.2f}x"))
+    return targets
+
+
+def findings_markdown(findings: list[Finding], head: str = "paper finding") -> str:
+    lines = [f"| {head} | on this sweep | numbers (seed means) |", "|---|---|---|"]
     lines += [f"| {f.claim} | {f.verdict} | {f.evidence} |" for f in findings]
     return "\n".join(lines) + "\n"

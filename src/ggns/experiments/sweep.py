@@ -46,7 +46,8 @@ from ..evaluation.selection import (CHECKPOINT_KEY, CHECKPOINTS_KEY, FAMILY_CHEC
 from .aggregate import RunResult, aggregate, load_run, normalized_benefit, to_csv, to_markdown
 from .baselines import GENERATED_MESH_FILE, write_json
 from .baselines import ROWS as BASELINE_ROWS
-from .findings import check_findings, findings_markdown
+from .curves import LATE_STEPS, markdown_rows, plot_curves, read_scalars, variant_row
+from .findings import check_findings, check_targets, findings_markdown
 from .figures import write_figures
 
 
@@ -382,6 +383,22 @@ def _training_markdown(runs: list[Run], results: list[RunResult]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _learning_markdown(runs: list[Run], output: Path) -> list[str]:
+    """The learning-curve table of every run (`curves.variant_row`, read from its fit's event files)
+    and the curves against optimizer steps (learning_curves.png)."""
+    curves = {f"{run.model} seed {run.seed}": read_scalars(run.fit_dir) if run.fit_dir.is_dir() else {}
+              for run in runs}
+    rows = [variant_row(name, [], scalars) for name, scalars in curves.items()]
+    figure = plot_curves(curves, output / "learning_curves.png", "steps", title="run")
+    return ["## Learning curves of each run", "",
+            "Read from each fit's TensorBoard events: optimizer steps and training seconds (wall seconds "
+            "since the first event where a fit logged no `time/train_seconds`, validation included), the "
+            "validation metrics at the last validation / the best one, the slope of log10 rollout MSE per "
+            "1000 steps over the second half of the validations (negative: still falling), and the training "
+            f"loss of graphs with / without a point cloud over the last {LATE_STEPS} steps.", "",
+            markdown_rows(rows, label="run", change=False), f"![{figure.stem}]({figure.name})", ""]
+
+
 def summarize(sweep: dict, log=print) -> Path:
     """Aggregate the finished runs (and the baselines computed by `run_baselines`) into
     <output>/summary.md and summary.csv (mean +- std over seeds; the normalized benefit of
@@ -408,8 +425,13 @@ def summarize(sweep: dict, log=print) -> Path:
         except ValueError as error:
             lines += ["", f"Normalized benefit not computed: {error}"]
     lines += ["", "## The paper's findings on this sweep", "", findings_markdown(check_findings(table))]
+    lines += ["## The project's targets on this sweep", "",
+              "Every model's one-step MSE against predicting no motion (the `static` row), GGNS's rollout "
+              "MSE over the point-cloud schedules, GGNS k=1 against MGN (ggns.experiments.findings).", "",
+              findings_markdown(check_targets(table), head="target")]
     lines += ["## Training of each run and the checkpoint each metric family was tested with", "",
               _training_markdown(finished, results[:len(finished)])]
+    lines += _learning_markdown(finished, output)
     lines += [f"![{figure.stem}]({figure.name})" for figure in write_figures(table, output)]
     path = output / "summary.md"
     path.write_text("\n".join(lines) + "\n")

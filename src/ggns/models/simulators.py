@@ -305,6 +305,14 @@ class GGNS(GraphSimulator):
         super().__init__(connectivity=connectivity, point_probability=point_probability, **kwargs)
 
 
+class GGNSM(GGNS):
+    """GGNS(M): GGNS given the material (Poisson's ratio as a mesh node feature). Not a model of the
+    paper: an ablation that bounds what inferring the material from point clouds is worth (GGNS
+    must infer it; GGNS(M) is told it, as MGN(M) is)."""
+
+    with_material = True
+
+
 class GGNSLSTM(GraphSimulator):
     """GGNS with an LSTM on the mesh latents, trained on windows of `window` steps (paper: 5)."""
 
@@ -344,7 +352,7 @@ class MGNShared(GraphSimulator):
                          eval_schedules=eval_schedules, **kwargs)
 
 
-MODELS = {"ggns": GGNS, "ggns_lstm": GGNSLSTM, "mgn": MGN, "mgn_m": MGNM, "mgn_shared": MGNShared}
+MODELS = {"ggns": GGNS, "ggns_lstm": GGNSLSTM, "mgn": MGN, "mgn_m": MGNM, "mgn_shared": MGNShared, "ggns_m": GGNSM}
 
 
 def load_simulator(path: str | Path, map_location=None) -> GraphSimulator:

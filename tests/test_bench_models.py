@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from ggns.bench import bench_models, gemm_rate
+from ggns.bench.models import bench_models, gemm_rate
 from ggns.config import CONF_DIR
 
 

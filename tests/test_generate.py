@@ -77,7 +77,9 @@ def _run_cli(*args, **kwargs):
 
 @pytest.mark.parametrize(
     "override, message",
-    [("scene.poissons_ratios=[0.5]", "Poisson's ratio"), ("scene.youngs_modulus=0", "Young's modulus"), ("sensor.voxel_size=0", "voxel_size")],
+    [("scene.poissons_ratios=[0.5]", "Poisson's ratio"), ("scene.youngs_modulus=0", "Young's modulus"), ("sensor.voxel_size=0", "voxel_size"),
+     ("scene.gird_nodes=5", "scene.gird_nodes (did you mean scene.grid_nodes?)"),  # a typo
+     ("sensr.voxel_size=0.1", "sensr (did you mean sensor or")],
 )
 def test_cli_refuses_bad_configuration_before_writing(tmp_path, override, message):
     result = _run_cli("generate", "--config", "plate_tiny", "--output", str(tmp_path / "out"), override)

@@ -9,7 +9,8 @@ import torch
 
 from ggns.config import CONF_DIR, load_config
 from ggns.geometry import cell_edges
-from ggns.graphs.build import build_graph, directed_mesh_edges
+from ggns.batch import directed_mesh_edges
+from ggns.graphs.build import build_graph
 from ggns.graphs.connectivity import Connectivity, load_connectivity
 from ggns.graphs.types import EDGE_TYPES, MESH_EDGE, NODE_TYPES, WORLD_EDGE
 from ggns.scenes.plate import plate_mesh

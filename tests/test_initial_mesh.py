@@ -6,11 +6,12 @@ import pytest
 import torch
 
 from ggns.baselines.alpha_shapes import voxel_size_for
-from ggns.baselines.initial_mesh import generated_trajectory, initial_mesh_rollout_iou, mesh_from_point_cloud, mesh_iou
+from ggns.baselines.initial_mesh import generated_trajectory, initial_mesh_rollout_iou, mesh_from_point_cloud
+from ggns.evaluation.metrics import mesh_iou
 from ggns.data.generate import split_path
 from ggns.data.schema import read_trajectories
 from ggns.geometry import cell_edges, signed_volumes
-from ggns.graphs.state import TrajectoryBatch
+from ggns.batch import TrajectoryBatch
 from ggns.models.simulators import GGNS
 from conftest import box_mesh
 

@@ -31,7 +31,8 @@ from ggns.evaluation.evaluate import zero_motion_one_step_mse
 from ggns.evaluation.rollout import RolloutError, rollout
 from ggns.evaluation.schedules import EveryK, FirstM, Never
 from ggns.evaluation.selection import val_metric
-from ggns.graphs.state import TrajectoryBatch
+from ggns.batch import TrajectoryBatch
+from ggns.graphs.state import state_graph
 from ggns.models.simulators import GGNS, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared
 from conftest import TINY12
 
@@ -77,7 +78,7 @@ def make(cls, seed: int = 0, **kwargs):
 
 def first_graph(model, batch, use_points=None, t: int = 0):
     use_points = model.uses_points if use_points is None else use_points
-    return batch.graph(t, batch.positions[t], use_points, model.connectivity, model.with_material)
+    return state_graph(batch, t, batch.positions[t], use_points, model.connectivity, model.with_material)
 
 
 def normalizer_buffers(state: dict) -> dict:
@@ -619,7 +620,7 @@ def test_last_checkpoint_is_the_newest_state_between_validations(cli_data, tmp_p
     assert (last["epoch"], last["global_step"]) == (2, 6)  # 3 epochs x 2 batches
 
 
-def test_cli_mgn_fit_and_test(cli_data, tmp_path):
+def test_cli_mgn_fit_and_test(cli_data, tmp_path, capsys):
     run_cli(["fit", *cli_args("mgn", cli_data, tmp_path, "fit", "--trainer.max_epochs", "1",
                            "--trainer.check_val_every_n_epoch", "1", "--trainer.limit_val_batches", "1")])
     run = tmp_path / "mgn" / "fit"
@@ -643,6 +644,29 @@ def test_cli_mgn_fit_and_test(cli_data, tmp_path):
     assert first["schedule"] == "never" and len(first["node_offsets"]) == 3
     positions = first["positions"]
     assert positions.shape[1:] == (first["node_offsets"][-1], 2) and torch.isfinite(positions).all()
+    # never silently another model: a checkpoint of another class than the config's is refused, and so
+    # is a model argument on the command line that the checkpoint would replace; nothing is logged
+    for config, extra, message in (("ggns", [], "holds a ggns.models.simulators.MGN, but the config asks for "
+                                                 "ggns.models.simulators.GGNS"),
+                                   ("mgn", ["--model.init_args.latent", "32"], "latent: given 32, checkpoint 16"),
+                                   ("mgn", ["--model.init_args.noise_std=0.5"], "noise_std: given 0.5, checkpoint 0.01")):
+        with pytest.raises(SystemExit) as exit_info:
+            run_cli(["test", *cli_args(config, cli_data, tmp_path, "refused", "--ckpt_path", str(best), *extra)])
+        assert exit_info.value.code == 2 and message in capsys.readouterr().err
+        assert not list(tmp_path.glob("*/refused"))
+    # evaluation settings may change at test time, and are applied
+    run_cli(["test", *cli_args("mgn", cli_data, tmp_path, "no_m10", "--ckpt_path", str(best),
+                               "--model.init_args.test_m_plus_10", "false")])
+    assert "m10_mse" not in json.loads((tmp_path / "mgn" / "no_m10" / "test_metrics.json").read_text())
+
+
+def test_a_run_without_logger_writes_no_config_into_its_root(cli_data, tmp_path):
+    """Lightning's SaveConfigCallback would drop config.yaml into default_root_dir (the working
+    directory by default) when a run has no logger of its own."""
+    run_cli(["fit", *cli_args("mgn", cli_data, tmp_path, "fit", "--trainer.logger", "false", "--trainer.max_epochs", "1",
+                           "--trainer.limit_val_batches", "0", "--trainer.default_root_dir", str(tmp_path))])
+    assert (tmp_path / "checkpoints" / "last.ckpt").is_file()  # the fit ran, in that root
+    assert not (tmp_path / "config.yaml").exists()
 
 
 def test_noise_field_moves_free_nodes_smoothly_and_is_refused_when_negative(trajs):

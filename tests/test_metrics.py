@@ -104,19 +104,19 @@ def test_parse_rejects_bad_text(text):
 
 
 def test_iou_identical_and_shifted_squares():
-    assert mesh_iou(SQUARE, SQUARE, SQUARE_CELLS) == pytest.approx(1.0)
+    assert mesh_iou(SQUARE, SQUARE_CELLS, SQUARE, SQUARE_CELLS) == pytest.approx(1.0)
     shift = torch.tensor([0.5, 0.0])
-    assert mesh_iou(SQUARE + shift, SQUARE, SQUARE_CELLS) == pytest.approx(1.0 / 3.0)
-    assert mesh_iou(SQUARE + 4 * shift, SQUARE, SQUARE_CELLS) == 0.0
+    assert mesh_iou(SQUARE + shift, SQUARE_CELLS, SQUARE, SQUARE_CELLS) == pytest.approx(1.0 / 3.0)
+    assert mesh_iou(SQUARE + 4 * shift, SQUARE_CELLS, SQUARE, SQUARE_CELLS) == 0.0
 
 
 def test_iou_folded_and_degenerate_triangles():
     folded = SQUARE.clone()
     folded[3] = torch.tensor([1.0, 0.0])  # triangle (0, 2, 3) flips onto triangle (0, 1, 2)
-    assert mesh_iou(folded, SQUARE, SQUARE_CELLS) == pytest.approx(0.5)
+    assert mesh_iou(folded, SQUARE_CELLS, SQUARE, SQUARE_CELLS) == pytest.approx(0.5)
     collapsed = SQUARE.clone()
     collapsed[3] = torch.tensor([0.5, 0.5])  # triangle (0, 2, 3) becomes a segment
-    assert mesh_iou(collapsed, SQUARE, SQUARE_CELLS) == pytest.approx(0.5)
+    assert mesh_iou(collapsed, SQUARE_CELLS, SQUARE, SQUARE_CELLS) == pytest.approx(0.5)
 
 
 def test_batch_iou_shape_and_values():
@@ -138,7 +138,7 @@ def test_nan_is_rejected_everywhere():
         lambda: per_step_curve(bad, true),
         lambda: m_plus_10_mse({0: bad}, true),
         lambda: batch_iou(bad, true, SQUARE_CELLS),
-        lambda: mesh_iou(bad[0, 5], true[0, 5], SQUARE_CELLS),
+        lambda: mesh_iou(bad[0, 5], SQUARE_CELLS, true[0, 5], SQUARE_CELLS),
     ):
         with pytest.raises(ValueError, match="non-finite"):
             call()

@@ -17,8 +17,9 @@ from ggns.evaluation.evaluate import evaluate_batch, zero_motion_one_step_mse
 from ggns.evaluation.metrics import m_plus_10_mse
 from ggns.evaluation.rollout import RolloutError, m_plus_10_rollouts, rollout
 from ggns.evaluation.schedules import EveryK, FirstM, Never
+from ggns.batch import TrajectoryBatch
 from ggns.graphs.connectivity import load_connectivity
-from ggns.graphs.state import TrajectoryBatch
+from ggns.graphs.state import state_graph
 
 CONN = load_connectivity("plate_full_graph")
 T = 8
@@ -97,15 +98,15 @@ def test_schedule_uses_points_exactly_at_scheduled_steps(batch, schedule):
 
 def test_per_trajectory_point_mask(batch):
     pos = batch.positions[3]
-    graph = batch.graph(3, pos, torch.tensor([False, True]), CONN)
+    graph = state_graph(batch, 3, pos, torch.tensor([False, True]), CONN)
     assert (graph["point"].batch == 1).all() and len(graph["point"].pos) == (batch.point_batch[3] == 1).sum()
     assert torch.equal(graph["point"].pos, batch.points[3][batch.point_batch[3] == 1])
-    assert "point" not in batch.graph(3, pos, torch.tensor([False, False]), CONN).node_types
-    assert "point" not in batch.graph(3, pos, False, CONN).node_types
-    assert len(batch.graph(3, pos, True, CONN)["point"].pos) == len(batch.points[3])
-    assert batch.graph(3, pos, True, CONN, with_material=True)["mesh"].x.shape[1] == 2
+    assert "point" not in state_graph(batch, 3, pos, torch.tensor([False, False]), CONN).node_types
+    assert "point" not in state_graph(batch, 3, pos, False, CONN).node_types
+    assert len(state_graph(batch, 3, pos, True, CONN)["point"].pos) == len(batch.points[3])
+    assert state_graph(batch, 3, pos, True, CONN, with_material=True)["mesh"].x.shape[1] == 2
     with pytest.raises(IndexError, match="t=7"):
-        batch.graph(T - 1, pos, True, CONN)
+        state_graph(batch, T - 1, pos, True, CONN)
 
 
 def test_fixed_nodes_stay_at_true_positions(batch):

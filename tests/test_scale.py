@@ -11,9 +11,10 @@ from ggns.config import load_config
 from ggns.data.generate import split_path
 from ggns.data.module import SimulationDataModule
 from ggns.data.schema import DatasetError, config_differences, read_trajectories
+from ggns.batch import TrajectoryBatch
 from ggns.graphs.connectivity import load_connectivity
 from ggns.graphs.scale import check, measure, report
-from ggns.graphs.state import TrajectoryBatch
+from ggns.graphs.state import state_graph
 from ggns.scenes.plate import plate_mesh
 
 PLATE = load_config("plate")["scene"]
@@ -47,7 +48,7 @@ def test_measure_matches_hand_counts(tiny_data_dir):
     for t in trajs:
         batch = TrajectoryBatch.from_trajectories([t])
         for s in steps:
-            g = batch.graph(s, batch.positions[s], True, full)
+            g = state_graph(batch, s, batch.positions[s], True, full)
             edges.append(sum(g[et].edge_index.size(1) for et in g.edge_types))
             pp += g["point", "near", "point"].edge_index.size(1)
     assert values["edges_per_graph"] == pytest.approx(np.mean(edges))

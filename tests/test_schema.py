@@ -23,7 +23,7 @@ from ggns.data.schema import (
     SplitWriter,
     read_trajectories,
 )
-from ggns.data.trajectory import Trajectory
+from ggns.trajectory import Trajectory
 from ggns.geometry import cell_edges
 
 SRC = Path(__file__).resolve().parents[1] / "src"
@@ -178,7 +178,7 @@ def test_killed_writer_leaves_no_final_file(tmp_path: Path) -> None:
         import itertools, sys, time
         import numpy as np
         from ggns.data.schema import SplitWriter
-        from ggns.data.trajectory import Trajectory
+        from ggns.trajectory import Trajectory
         x = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
         i64 = lambda a: np.array(a, dtype=np.int64)
         traj = Trajectory(x, i64([[0, 1, 2]]), i64([[0, 1], [0, 2], [1, 2]]), np.stack([x, x]),

@@ -12,8 +12,9 @@ import torch
 import yaml
 
 from ggns.config import CONF_DIR
-from ggns.experiments.baselines import GENERATED_MESH_FILE, baseline_spec, run_baselines
-from ggns.experiments.sweep import Run, load_sweep, prepare_datasets, run_sweep, runs_of, slurm_script, summarize
+from ggns.baselines.scores import GENERATED_MESH_FILE
+from ggns.experiments.sweep import (Run, baseline_spec, load_sweep, prepare_datasets, run_baselines, run_sweep, runs_of,
+                                    slurm_script, summarize)
 from conftest import TINY12
 
 

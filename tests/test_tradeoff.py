@@ -1,4 +1,4 @@
-"""The speed/accuracy trade benchmark (ggns.experiments.tradeoff) on the plate_tiny preset."""
+"""The speed/accuracy trade benchmark (ggns.bench.tradeoff) on the plate_tiny preset."""
 from __future__ import annotations
 
 import csv
@@ -11,7 +11,7 @@ import torch
 from ggns.config import load_config
 from ggns.data.module import SimulationDataModule
 
-from ggns.experiments.tradeoff import (COLUMNS, model_points, pareto_mask, pareto_plot,
+from ggns.bench.tradeoff import (COLUMNS, model_points, pareto_mask, pareto_plot,
                                        reference_substeps_for, simulator_points, write_csv)
 from ggns.models.simulators import GGNS, MGN, load_simulator
 
@@ -109,7 +109,7 @@ def test_tradeoff_at_two_mesh_resolutions(checkpoints, tiny_data_dir, tmp_path):
     """The simulator and the models at the preset's resolution and at a finer one, whose test
     trajectories (with point clouds) are generated once beside the dataset."""
     from ggns.config import load_config
-    from ggns.experiments.tradeoff import tradeoff
+    from ggns.bench.tradeoff import tradeoff
 
     preset = int(load_config("plate_tiny")["scene"]["grid_nodes"])
     finer = preset + 2

@@ -7,7 +7,7 @@ import pytest
 import torch
 from matplotlib.figure import Figure
 
-from ggns.data.trajectory import Trajectory
+from ggns.trajectory import Trajectory
 from ggns.viz import figure_to_image, plot_trajectories, rollout_figure, save_figure
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

@@ -46,7 +46,8 @@ def _geometry(args: argparse.Namespace) -> None:
 
 
 def _bench(args: argparse.Namespace) -> None:
-    from .bench import bench_models, bench_sim
+    from .bench.models import bench_models
+    from .bench.sim import bench_sim
 
     if args.overrides and args.what != "learning":
         raise ValueError(f"--set {args.overrides} is for `bench learning` only")
@@ -64,7 +65,7 @@ def _bench(args: argparse.Namespace) -> None:
             run_learning(spec, args.variant)
         return
     if args.what == "tradeoff":
-        from .experiments.tradeoff import tradeoff
+        from .bench.tradeoff import tradeoff
 
         checkpoints = {}
         for item in args.checkpoint or []:
@@ -96,8 +97,7 @@ def _demo(args: argparse.Namespace) -> None:
 
 
 def _sweep(args: argparse.Namespace) -> None:
-    from .experiments.baselines import run_baselines
-    from .experiments.sweep import load_sweep, run_sweep, slurm_script, summarize
+    from .experiments.sweep import load_sweep, run_baselines, run_sweep, slurm_script, summarize
 
     sweep = load_sweep(args.config, args.overrides)
     if args.slurm:
@@ -116,9 +116,13 @@ def _sweep(args: argparse.Namespace) -> None:
 def main(argv: list[str] | None = None) -> None:
     given = sys.argv[1:] if argv is None else list(argv)
     if given and given[0] in ("fit", "validate", "test", "predict"):
-        from .cli import build_cli
+        from .cli import CheckpointMismatchError, build_cli
 
-        build_cli(argv)  # None: LightningCLI reads sys.argv itself
+        try:
+            build_cli(argv)  # None: LightningCLI reads sys.argv itself
+        except CheckpointMismatchError as error:
+            print(f"error: {error}", file=sys.stderr)
+            raise SystemExit(2) from None
         return
     parser = argparse.ArgumentParser(prog="ggns", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)

@@ -2,17 +2,23 @@
 
 Any `GraphSimulator` subclass is a model (`--model ggns.models.simulators.GGNS` or a config's
 `model.class_path`); the data is a `SimulationDataModule`. Configs are parsed in omegaconf mode
-(so `${...}` interpolation works), the run's full config is saved next to its TensorBoard logs,
+(so `${...}` interpolation works), the run's full config is saved next to its TensorBoard logs
+(runs without a logger save none),
 and `--ckpt_path` resumes a fit or picks the checkpoint to test (the model then takes the
-checkpoint's hyperparameters, except the evaluation settings `EVALUATION_ARGS`). A trainer with a
-logger also logs the learning rate of every optimizer step as `train/lr` (Lightning's
-LearningRateMonitor).
+checkpoint's hyperparameters, except the evaluation settings `EVALUATION_ARGS`). Nothing given is
+silently dropped for the checkpoint's: a checkpoint of another model class than the config's is
+refused, and so is a model argument given on the command line that the checkpoint would replace
+by a different value (`CheckpointMismatchError`). A trainer with a logger also logs the learning
+rate of every optimizer step as `train/lr` (Lightning's LearningRateMonitor).
 """
 from __future__ import annotations
 
+import re
+import sys
+
 from pytorch_lightning import Trainer
 from pytorch_lightning.callbacks import LearningRateMonitor
-from pytorch_lightning.cli import LightningCLI
+from pytorch_lightning.cli import LightningCLI, SaveConfigCallback
 
 from .data.module import SimulationDataModule
 from .models.simulators import GraphSimulator
@@ -21,6 +27,29 @@ SUBCOMMANDS = ("fit", "validate", "test", "predict")
 # Evaluation settings, not part of a trained model: with --ckpt_path they still come from the command
 # line and config (Lightning replaces every other model argument by the checkpoint's hyperparameters).
 EVALUATION_ARGS = ("eval_schedules", "test_m_plus_10", "test_iou")
+
+
+class CheckpointMismatchError(ValueError):
+    """--ckpt_path names a checkpoint that contradicts the model the config or the command line asks for."""
+
+
+def command_line_model_args(args: list[str]) -> set[str]:
+    """The model init arguments given on a command line (`--model.init_args.NAME[=V]` or `--model.NAME`)."""
+    names = set()
+    for arg in args:
+        match = re.match(r"--model\.(?:init_args\.)?([A-Za-z_]\w*)(?:=|$)", str(arg))
+        if match and match.group(1) not in ("class_path", "init_args", "dict_kwargs"):
+            names.add(match.group(1))
+    return names
+
+
+class RunConfigCallback(SaveConfigCallback):
+    """Saves the run's full config next to its logs; a run without a logger has no log directory
+    of its own (Lightning would write config.yaml into the working directory) and saves none."""
+
+    def setup(self, trainer: Trainer, pl_module, stage: str) -> None:
+        if trainer.loggers:
+            super().setup(trainer, pl_module, stage)
 
 
 class SimulatorCLI(LightningCLI):
@@ -33,14 +62,46 @@ class SimulatorCLI(LightningCLI):
             trainer.callbacks.append(LearningRateMonitor(logging_interval="step"))
         return trainer
 
+    def parse_arguments(self, parser, args) -> None:
+        self._given_args = [str(a) for a in (sys.argv[1:] if args is None else args)] \
+            if not isinstance(args, dict) else []
+        super().parse_arguments(parser, args)
+
     def _parse_ckpt_path(self) -> None:
-        """Lightning's: the checkpoint's hyperparameters replace the model arguments, except EVALUATION_ARGS."""
+        """Lightning's: the checkpoint's hyperparameters replace the model arguments, except
+        EVALUATION_ARGS; refused when the checkpoint's model class differs from the config's, or
+        when it would replace a model argument given on the command line by another value."""
         subcommand = self.config.get("subcommand")
-        init_args = self.config[subcommand].model.get("init_args") if subcommand else None
+        if not subcommand or not self.config[subcommand].get("ckpt_path"):
+            return super()._parse_ckpt_path()
+        model = self.config[subcommand].model
+        init_args = model.get("init_args")
+        asked_class = model.get("class_path")
+        given = {k: init_args[k] for k in command_line_model_args(getattr(self, "_given_args", []))
+                 if init_args is not None and k in init_args and k not in EVALUATION_ARGS}
         kept = {k: init_args[k] for k in EVALUATION_ARGS if init_args is not None and k in init_args}
         super()._parse_ckpt_path()
+        model = self.config[subcommand].model
+        path = self.config[subcommand].ckpt_path
+        if asked_class and model.get("class_path") != asked_class:
+            raise CheckpointMismatchError(
+                f"{path} holds a {model.get('class_path')}, but the config asks for {asked_class}: test it "
+                f"with that model's config (e.g. conf/plate/<model>.yaml) or pass --model {model.get('class_path')}")
+        shadowed = {k: (v, model.init_args[k]) for k, v in given.items() if _differ(v, model.init_args.get(k))}
+        if shadowed:
+            raise CheckpointMismatchError(
+                f"{path} was trained with other values of the model arguments given on the command line, which "
+                "the checkpoint's would replace: " + ", ".join(f"{k}: given {a!r}, checkpoint {b!r}"
+                                                               for k, (a, b) in shadowed.items()) +
+                f" (only the evaluation settings {list(EVALUATION_ARGS)} can change at test time)")
         for key, value in kept.items():
             self.config[subcommand].model.init_args[key] = value
+
+
+def _differ(given, stored) -> bool:
+    """Whether two argument values differ (lists and tuples compared by their items)."""
+    normalize = (lambda v: list(v) if isinstance(v, (list, tuple)) else v)
+    return normalize(given) != normalize(stored)
 
 
 def build_cli(args: list[str] | None = None, run: bool = True) -> LightningCLI:
@@ -50,6 +111,7 @@ def build_cli(args: list[str] | None = None, run: bool = True) -> LightningCLI:
         SimulationDataModule,
         subclass_mode_model=True,
         parser_kwargs={"parser_mode": "omegaconf"},
+        save_config_callback=RunConfigCallback,
         save_config_kwargs={"overwrite": True},
         seed_everything_default=0,
         args=args,

@@ -13,14 +13,13 @@ import math
 import time
 from pathlib import Path
 
-import torch
-
 from .cli import build_cli
 from .config import CONF_DIR
 from .data.module import SimulationDataModule
-from .evaluation.schedules import EveryK, Never
-from .graphs.state import TrajectoryBatch
-from .viz import plot_trajectories, rollout_figure, save_figure
+from .evaluation.pictures import rollout_picture
+from .evaluation.schedules import EveryK
+from .batch import TrajectoryBatch
+from .viz import plot_trajectories, save_figure
 
 MODELS = ("ggns", "mgn")
 
@@ -90,19 +89,10 @@ def rollout_pictures(runs: list[dict], path: Path, trajectories: int = 2) -> lis
     """Ground truth vs. each model's rollout on the first test trajectories, one figure row per model."""
     dm = runs[0]["datamodule"]
     trajs = dm.trajectories("test")[:trajectories]
-    figures = []
-    for traj in trajs:
-        batch = TrajectoryBatch.from_trajectories([traj])
-        preds = {}
-        for r in runs:
-            module = r["module"].eval()
-            schedule = EveryK(5) if module.uses_points else Never()
-            preds[f"{r['name'].upper()} ({schedule})"] = module.rollout(batch.to(module.device), schedule).cpu()
-        points = [torch.as_tensor(traj.point_cloud(t)) if t < traj.num_steps - 1 and t % 5 == 0 else None
-                  for t in range(traj.num_steps)]
-        figures.append(rollout_figure(traj.cells, traj.positions, preds, points=points,
-                                      collider=traj.collider_positions, collider_faces=traj.collider_faces,
-                                      title=f"test trajectory, nu={traj.poissons_ratio:g} (green: point clouds given to GGNS)"))
+    models = {r["name"].upper(): r["module"].eval() for r in runs}
+    figures = [rollout_picture(TrajectoryBatch.from_trajectories([traj]), traj.collider_faces, models, EveryK(5),
+                               title=f"test trajectory, nu={traj.poissons_ratio:g} (green: point clouds given to GGNS)")
+               for traj in trajs]
     return [save_figure(fig, path.with_name(f"{path.stem}_{i}{path.suffix}")) for i, fig in enumerate(figures)]
 
 

@@ -54,3 +54,15 @@ def signed_volumes(positions: np.ndarray, cells: np.ndarray) -> np.ndarray:
     dm = (x[:, 1:] - x[:, :1]).transpose(0, 2, 1)
     d = x.shape[-1]
     return np.linalg.det(dm) / (1.0 if d == 1 else (2.0 if d == 2 else 6.0))
+
+
+def check_cells(cells, num_nodes: int | None = None, name: str = "cells", corners: int = 3) -> np.ndarray:
+    """`cells` as an integer array [C, corners] (triangles by default) indexing `num_nodes` nodes;
+    ValueError naming `name` otherwise. The one check of a cell array."""
+    cells = np.asarray(cells)
+    if cells.ndim != 2 or cells.shape[1] != corners or not np.issubdtype(cells.dtype, np.integer):
+        kind = "triangles" if corners == 3 else "tetrahedra" if corners == 4 else "cells"
+        raise ValueError(f"{name} must be integer [C, {corners}] {kind}, got {cells.dtype} {cells.shape}")
+    if num_nodes is not None and cells.size and (cells.min() < 0 or cells.max() >= num_nodes):
+        raise ValueError(f"{name} index outside the {num_nodes} mesh nodes")
+    return cells

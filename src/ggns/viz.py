@@ -18,7 +18,8 @@ import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
-from .data.trajectory import Trajectory  # noqa: E402
+from .geometry import check_cells  # noqa: E402
+from .trajectory import Trajectory  # noqa: E402
 
 SAVE_DPI = 110
 
@@ -116,10 +117,7 @@ def rollout_figure(
     num_steps, num_nodes = true.shape[:2]
     if num_steps < 1:
         raise ValueError("true has no steps")
-    if cells.ndim != 2 or cells.shape[1] != 3:
-        raise ValueError(f"cells must be triangles [C, 3], got {cells.shape}")
-    if cells.size and (cells.min() < 0 or cells.max() >= num_nodes):
-        raise ValueError(f"cells index nodes outside [0, {num_nodes - 1}]")
+    cells = check_cells(cells, num_nodes)
     if not preds:
         raise ValueError("no predictions to plot")
     pred_arrays: dict[str, np.ndarray] = {}

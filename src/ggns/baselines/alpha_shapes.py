@@ -18,13 +18,13 @@ import numpy as np
 import shapely
 from scipy.spatial import Delaunay, QhullError
 
-from ggns.evaluation.metrics import _mesh_regions
+from ..evaluation.metrics import check_cells, mesh_region, region_iou
 
 # circumradius threshold of `default_alpha`, in voxel sizes
 DEFAULT_RADIUS_VOXELS = 1.5
 
 
-def _points2d(points, name: str = "points") -> np.ndarray:
+def points_2d(points, name: str = "points") -> np.ndarray:
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
         raise ValueError(f"{name} must be [P, 2], got shape {points.shape}")
@@ -33,7 +33,7 @@ def _points2d(points, name: str = "points") -> np.ndarray:
     return points
 
 
-def _voxel_centroids(points: np.ndarray, size: float) -> np.ndarray:
+def voxel_centroids(points: np.ndarray, size: float) -> np.ndarray:
     """Centroid of the points in each occupied square voxel of side `size` (grid anchored at the
     points' minimum corner), ordered by voxel index: [V, 2]."""
     cell = np.floor((points - points.min(axis=0)) / size).astype(np.int64)
@@ -53,7 +53,7 @@ def voxel_size_for(points, target: int, iterations: int = 40) -> float:
     Taking the largest such size matters when the cloud is sparser than `target` allows: any tiny
     size would then hit the count, but the voxel size should reflect the point spacing.
     """
-    points = _points2d(points)
+    points = points_2d(points)
     if len(points) == 0:
         raise ValueError("points is empty")
     if target < 3:
@@ -61,7 +61,7 @@ def voxel_size_for(points, target: int, iterations: int = 40) -> float:
     extent = float((points.max(axis=0) - points.min(axis=0)).max())
     if extent == 0.0:
         raise ValueError("all points coincide")
-    count = lambda log_size: len(_voxel_centroids(points, float(np.exp(log_size))))  # noqa: E731
+    count = lambda log_size: len(voxel_centroids(points, float(np.exp(log_size))))  # noqa: E731
     lo, hi = np.log(extent * 1e-9), np.log(extent * 2.0)  # count(hi) == 1: one voxel holds all
     target = min(target, count(lo))  # invariant: count(lo) >= target > count(hi)
     for _ in range(iterations):
@@ -77,8 +77,8 @@ def voxel_size_for(points, target: int, iterations: int = 40) -> float:
 def voxel_subsample(points, target: int) -> np.ndarray:
     """Grid voxel subsampling of points [P, 2] to about `target` points (centroid per occupied
     voxel, voxel size from `voxel_size_for`). Deterministic. Returns float64 [P', 2]."""
-    points = _points2d(points)
-    return _voxel_centroids(points, voxel_size_for(points, target))
+    points = points_2d(points)
+    return voxel_centroids(points, voxel_size_for(points, target))
 
 
 def default_alpha(voxel_size: float) -> float:
@@ -96,7 +96,7 @@ def alpha_shape(points, alpha: float):
     circumradius < 1 / alpha. Collinear/degenerate triangles have infinite circumradius and are
     dropped; if every triangle is rejected (or all points are collinear) the result is an empty
     geometry."""
-    points = _points2d(points)
+    points = points_2d(points)
     if not alpha > 0:
         raise ValueError(f"alpha must be > 0 (alpha = 1 / radius), got {alpha}")
     if len(points) < 3:
@@ -116,8 +116,7 @@ def alpha_shape(points, alpha: float):
     keep = tri[radius < 1.0 / alpha]
     if len(keep) == 0:
         return shapely.Polygon()
-    region = _mesh_regions(points, keep)
-    return shapely.Polygon() if region is None else region
+    return mesh_region(points, keep)
 
 
 def alpha_shape_iou(points, true_positions, cells, alpha: float | None = None, target: int | None = None) -> float:
@@ -126,22 +125,17 @@ def alpha_shape_iou(points, true_positions, cells, alpha: float | None = None, t
     points [P, 2]; true_positions [N, 2]; cells [C, 3]; target: subsample size (default N);
     alpha: 1 / radius, default `default_alpha(voxel size)`. An empty alpha shape scores 0.
     """
-    true_positions = _points2d(true_positions, "true_positions")
-    cells = np.asarray(cells)
-    if cells.ndim != 2 or cells.shape[1] != 3 or not np.issubdtype(cells.dtype, np.integer):
-        raise ValueError(f"cells must be integer [C, 3] triangles, got {cells.dtype} {cells.shape}")
-    points = _points2d(points)
+    true_positions = points_2d(true_positions, "true_positions")
+    cells = check_cells(cells, len(true_positions))
+    points = points_2d(points)
     target = len(true_positions) if target is None else int(target)
     voxel = voxel_size_for(points, target)
-    sub = _voxel_centroids(points, voxel)
+    sub = voxel_centroids(points, voxel)
     shape = alpha_shape(sub, default_alpha(voxel) if alpha is None else alpha)
-    truth = _mesh_regions(true_positions, cells)
-    true_area = shapely.area(truth)
-    if not true_area > 0:
+    truth = mesh_region(true_positions, cells)
+    if not shapely.area(truth) > 0:
         raise ValueError("the true mesh covers zero area")
-    inter = shapely.area(shapely.intersection(shape, truth))
-    union = shapely.area(shape) + true_area - inter
-    return float(inter / union)
+    return float(region_iou(shape, truth))
 
 
 def trajectory_alpha_iou(traj, alpha: float | None = None, target: int | None = None) -> np.ndarray:

@@ -14,24 +14,25 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import shapely
 import torch
 from scipy.spatial import Delaunay, QhullError
 
-from ggns.baselines.alpha_shapes import _points2d, _voxel_centroids, default_alpha, voxel_size_for
-from ggns.data.trajectory import Trajectory
-from ggns.evaluation.metrics import _mesh_regions
-from ggns.geometry import cell_edges, signed_volumes
+from ..batch import TrajectoryBatch
+from ..evaluation.evaluate import split_trajectories
+from ..evaluation.metrics import mesh_iou
+from ..geometry import cell_edges, signed_volumes
+from ..trajectory import Trajectory
+from .alpha_shapes import default_alpha, points_2d, voxel_centroids, voxel_size_for
 
 
 def _generate(points, target_nodes: int, alpha: float | None):
     """(nodes, cells, edges, voxel size) of `mesh_from_point_cloud`."""
-    points = _points2d(points)
+    points = points_2d(points)
     target_nodes = int(target_nodes)
     if target_nodes < 3:
         raise ValueError(f"target_nodes must be >= 3, got {target_nodes}")
     voxel = voxel_size_for(points, target_nodes)  # ValueError on empty / coincident clouds
-    sub = _voxel_centroids(points, voxel)
+    sub = voxel_centroids(points, voxel)
     alpha = default_alpha(voxel) if alpha is None else float(alpha)
     if not alpha > 0:
         raise ValueError(f"alpha must be > 0 (alpha = 1 / radius), got {alpha}")
@@ -87,7 +88,7 @@ def generated_trajectory(traj: Trajectory, target_nodes: int | None = None, alph
     """
     if traj.dim != 2:
         raise ValueError(f"initial mesh generation is 2D only, got dim {traj.dim}")
-    cloud = _points2d(traj.point_cloud(0), "first point cloud")
+    cloud = points_2d(traj.point_cloud(0), "first point cloud")
     target = len(traj.rest_positions) if target_nodes is None else int(target_nodes)
     nodes, cells, edges, voxel = _generate(cloud, target, alpha)
     tol = voxel if fixed_tolerance is None else float(fixed_tolerance)
@@ -104,31 +105,6 @@ def generated_trajectory(traj: Trajectory, target_nodes: int | None = None, alph
     )
 
 
-def _cells(cells, num_nodes: int, name: str) -> np.ndarray:
-    cells = np.asarray(cells)
-    if cells.ndim != 2 or cells.shape[1] != 3 or not np.issubdtype(cells.dtype, np.integer):
-        raise ValueError(f"{name} must be integer [C, 3] triangles, got {cells.dtype} {cells.shape}")
-    if cells.size and (cells.min() < 0 or cells.max() >= num_nodes):
-        raise ValueError(f"{name} index outside the {num_nodes} nodes")
-    return cells
-
-
-def mesh_iou(pred_nodes, pred_cells, true_nodes, true_cells) -> float:
-    """IoU of the areas covered by two 2D meshes with their own nodes and cells (union of the
-    triangles, as in `ggns.evaluation.metrics`). ValueError if both cover zero area."""
-    pred_nodes = _points2d(pred_nodes, "pred_nodes")
-    true_nodes = _points2d(true_nodes, "true_nodes")
-    a = _mesh_regions(pred_nodes, _cells(pred_cells, len(pred_nodes), "pred_cells"))
-    b = _mesh_regions(true_nodes, _cells(true_cells, len(true_nodes), "true_cells"))
-    a = shapely.Polygon() if a is None else a
-    b = shapely.Polygon() if b is None else b
-    inter = shapely.area(shapely.intersection(a, b))
-    union = shapely.area(a) + shapely.area(b) - inter
-    if not union > 0:
-        raise ValueError("IoU undefined: both meshes cover zero area")
-    return float(inter / union)
-
-
 def initial_mesh_rollout_ious(model, trajectories: list[Trajectory], schedule, generated: list[Trajectory] | None = None,
                               target_nodes: int | None = None, alpha: float | None = None,
                               fixed_tolerance: float | None = None) -> list[np.ndarray]:
@@ -136,9 +112,6 @@ def initial_mesh_rollout_ious(model, trajectories: list[Trajectory], schedule, g
     of each trajectory (one batch) under `schedule` (a Schedule or e.g. "every:5") and return,
     per trajectory, the IoU with the true mesh of every step: float64 [T]; index 0 scores the
     generated mesh itself. `generated`: the `generated_trajectory`s, when already made."""
-    from ggns.evaluation.evaluate import split_trajectories
-    from ggns.graphs.state import TrajectoryBatch
-
     if generated is None:
         generated = [generated_trajectory(t, target_nodes, alpha, fixed_tolerance) for t in trajectories]
     batch = TrajectoryBatch.from_trajectories(generated, device=model.device, dtype=model.dtype)

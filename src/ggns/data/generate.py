@@ -64,7 +64,9 @@ def split_path(output: str | Path, split: str) -> Path:
     return Path(output) / f"{split}.h5"
 
 
-def _jobs(config: dict, split: str, count: int) -> list[tuple[int, int]]:
+def trajectory_jobs(config: dict, split: str, count: int) -> list[tuple[int, int]]:
+    """The (shape x material combination, seed) of each of a split's first `count` trajectories:
+    combinations cycled in order (balanced splits), seeds derived from the config's seed."""
     combos = SCENES[config["scene"]["name"]].num_combinations(config["scene"])
     return [(i % combos, trajectory_seed(config["seed"], split, i)) for i in range(count)]
 
@@ -97,7 +99,7 @@ def generate(config: dict, splits: list[str] | None = None, *, overwrite: bool =
         _init_worker(config)  # in this process: its thread setting is restored below
     try:
         for split, path in zip(chosen, paths):
-            jobs = _jobs(config, split, int(sizes[split]))
+            jobs = trajectory_jobs(config, split, int(sizes[split]))
             results = pool.imap(_make, jobs) if pool else map(_make, jobs)
             with SplitWriter(path, scene=name, split=split, dim=dim, generator_config=config, overwrite=overwrite) as writer:
                 with tqdm(total=len(jobs), desc=f"{name}/{split}", unit="traj", disable=not progress) as bar:

@@ -20,10 +20,10 @@ import pytorch_lightning as pl
 from torch.utils.data import DataLoader, Dataset
 
 from ..config import load_config
-from ..graphs.state import TrajectoryBatch
+from ..batch import TrajectoryBatch
 from .generate import generate, split_path
 from .schema import read_trajectories
-from .trajectory import Trajectory
+from ..trajectory import Trajectory
 
 SPLITS = ("train", "val", "test")
 

@@ -20,8 +20,8 @@ from typing import Iterator
 import h5py
 import numpy as np
 
-from ggns.data.trajectory import Trajectory
-from ggns.geometry import signed_volumes
+from ..trajectory import Trajectory
+from ..geometry import signed_volumes
 
 SCHEMA_VERSION = 1
 FORMAT = "ggns-trajectories"

@@ -1,5 +1,5 @@
 """Evaluation: rollout metrics (MSE variants, 2D mesh IoU) and point-cloud schedules."""
-from ggns.evaluation.metrics import (
+from .metrics import (
     batch_iou,
     m_plus_10_mse,
     m_plus_10_starts,
@@ -9,7 +9,7 @@ from ggns.evaluation.metrics import (
     rollout_mse,
     step_mse,
 )
-from ggns.evaluation.schedules import EveryK, FirstM, Never, Schedule, parse_schedule
+from .schedules import EveryK, FirstM, Never, Schedule, parse_schedule
 
 __all__ = [
     "EveryK",

@@ -18,9 +18,11 @@ import torch
 from pytorch_lightning.callbacks import BasePredictionWriter
 from pytorch_lightning.loggers import TensorBoardLogger
 
-from ..graphs.state import TrajectoryBatch
-from .evaluate import schedule_key, zero_motion_one_step_mse
-from .schedules import EveryK, Never, Schedule, parse_schedule
+from ..batch import TrajectoryBatch
+from ..viz import figure_to_image
+from .evaluate import zero_motion_one_step_mse
+from .pictures import rollout_picture
+from .schedules import EveryK, Never, Schedule, effective_schedules, parse_schedule
 from .selection import CHECKPOINT_KEY, M10, checkpoint_info, describe, val_metric
 
 
@@ -33,11 +35,6 @@ def _eval_batch(trainer: pl.Trainer, split: str, count: int | None, cache: dict)
     return cache["batch"].to(trainer.lightning_module.device)
 
 
-def _effective(schedule: Schedule, pl_module) -> Schedule:
-    """A model without point edges never sees point clouds, whatever the schedule says."""
-    return schedule if pl_module.uses_points else Never()
-
-
 class RolloutEvaluation(pl.Callback):
     """Validation scalars for checkpoint selection, one per metric family (`evaluation.selection`),
     from the first `num_trajectories` trajectories of `split` rolled out as one batch through the
@@ -48,7 +45,7 @@ class RolloutEvaluation(pl.Callback):
         val/one_step_ratio            one_step_mse / one_step_mse_zero_motion (below 1: better than no motion)
         val/rollout_mse_k1            full rollout, a point cloud every step (models with point clouds only)
         val/rollout_mse_never         full rollout without point clouds
-        val/rollout_mse_<s>           each extra schedule in `schedules` (`schedule_key`)
+        val/rollout_mse_<s>           each extra schedule in `schedules` (`Schedule.key`)
         val/m10_mse                   the m+10 MSE over every `m_plus_10_stride`-th start m (if m_plus_10)
         val/rollout_mse               alias of `primary` (a family above; default k1, or never without
                                       point clouds), kept for older configs
@@ -67,14 +64,12 @@ class RolloutEvaluation(pl.Callback):
 
     def schedules(self, pl_module) -> list[Schedule]:
         """The rollouts of a model: k1 (with point clouds), never, then the extra schedules, once each."""
-        wanted = [EveryK(1)] if pl_module.uses_points else []
-        wanted += [Never()] + [_effective(s, pl_module) for s in self.extra]
-        return list({schedule_key(s): s for s in wanted}.values())
+        return effective_schedules([EveryK(1), Never(), *self.extra], pl_module.uses_points)
 
     def primary_family(self, pl_module) -> str:
         """The family `val/rollout_mse` aliases; ValueError when the model does not evaluate it."""
         primary = self.primary or ("k1" if pl_module.uses_points else "never")
-        families = [schedule_key(s) for s in self.schedules(pl_module)] + ([M10] if self.m_plus_10 else [])
+        families = [s.key for s in self.schedules(pl_module)] + ([M10] if self.m_plus_10 else [])
         if primary not in families:
             raise ValueError(f"RolloutEvaluation: primary {primary!r} is not evaluated for {type(pl_module).__name__}; "
                              f"choose one of {families}")
@@ -157,16 +152,8 @@ class RolloutPictures(pl.Callback):
         batch = self._cache["batch"].to(pl_module.device)
         if batch.positions.shape[-1] != 2:
             return
-        from ..viz import figure_to_image, rollout_figure
-
-        schedule = _effective(self.schedule, pl_module)
-        pred = pl_module.rollout(batch, schedule)
-        steps = batch.num_steps
-        points = [batch.points[t].cpu() if t < steps - 1 and schedule.uses_points(t) else None for t in range(steps)]
-        fig = rollout_figure(batch.cells.cpu(), batch.positions.cpu(), {f"{type(pl_module).__name__} {schedule}": pred.cpu()},
-                             points=points, collider=None if batch.collider is None else batch.collider.cpu(),
-                             collider_faces=self._cache["faces"], num_frames=self.num_frames,
-                             title=f"epoch {trainer.current_epoch}")
+        fig = rollout_picture(batch, self._cache["faces"], {type(pl_module).__name__: pl_module}, self.schedule,
+                              num_frames=self.num_frames, title=f"epoch {trainer.current_epoch}")
         logger.experiment.add_image(f"rollout/{self.split}_{self.trajectory}", figure_to_image(fig),
                                     trainer.global_step, dataformats="HWC")
 

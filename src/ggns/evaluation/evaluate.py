@@ -8,7 +8,7 @@ accumulates them over batches and reports the mean (and std over trajectories). 
     rollout_iou_<s>     mean IoU over the predicted states of that rollout (2D only)
     m10_mse             the m+10-step error (`metrics.m_plus_10_mse`), averaged over m (every m, or
                         every `m_plus_10_stride`-th for a cheaper estimate during training)
-with <s> = k1, k2, k5, k10 (a point cloud every k steps), never, first<m> (`schedule_key`).
+with <s> = k1, k2, k5, k10 (a point cloud every k steps), never, first<m> (`Schedule.key`).
 Errors average over all mesh nodes and coordinates, as in the paper (fixed nodes are set to
 their known positions and contribute zero error).
 """
@@ -21,21 +21,10 @@ import torch
 from torch import Tensor
 
 from ..graphs.connectivity import Connectivity
-from ..graphs.state import TrajectoryBatch
+from ..batch import TrajectoryBatch
 from .metrics import batch_iou, m_plus_10_mse, m_plus_10_starts, one_step_mse, rollout_mse
 from .rollout import StepFn, m_plus_10_rollouts, one_step_predictions, rollout
-from .schedules import EveryK, FirstM, Never, Schedule
-
-def schedule_key(schedule: Schedule) -> str:
-    """Metric-name suffix of a schedule: EveryK(5) -> "k5", Never() -> "never", FirstM(3) -> "first3"."""
-    if isinstance(schedule, EveryK):
-        return f"k{schedule.k}"
-    if isinstance(schedule, FirstM):
-        return f"first{schedule.m}"
-    if isinstance(schedule, Never):
-        return "never"
-    raise TypeError(f"unknown schedule {schedule!r}")
-
+from .schedules import Never, Schedule
 
 def split_trajectories(positions: Tensor, batch: TrajectoryBatch) -> list[Tensor]:
     """[T, sumN, d] -> B tensors [1, T, N_b, d] (the metrics' layout), on the CPU."""
@@ -68,7 +57,7 @@ def evaluate_batch(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Connec
     one_step = split_trajectories(one_step_predictions(step_fn, batch, one_step_schedule, connectivity, with_material), batch)
     add("one_step_mse", [one_step_mse(p[:, 1:], t[:, 1:])[0] for p, t in zip(one_step, true)])
     for schedule in schedules:
-        key = schedule_key(schedule)
+        key = schedule.key
         pred = split_trajectories(rollout(step_fn, batch, schedule, connectivity, with_material)[0], batch)
         add(f"rollout_mse_{key}", [rollout_mse(p, t)[0] for p, t in zip(pred, true)])
         if iou and batch.positions.shape[-1] == 2:

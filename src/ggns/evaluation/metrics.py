@@ -13,6 +13,8 @@ import numpy as np
 import shapely
 import torch
 
+from ..geometry import check_cells
+
 # a triangle with |2*area| <= _DEGENERATE * (|e1|^2 + |e2|^2) is treated as collinear (covers no area)
 _DEGENERATE = 1e-12
 
@@ -125,20 +127,36 @@ def m_plus_10_mse(preds: dict, true, mask=None, horizon: int = 10) -> tuple[floa
     return per_m.mean().item(), per_m
 
 
-def _mesh_regions(positions: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Union of the triangles of each mesh, [..., N, 2] -> geometry array [...].
+def mesh_region(positions: np.ndarray, cells: np.ndarray):
+    """The area covered by 2D meshes: union of the triangles of each, [..., N, 2] -> shapely
+    geometry array [...] (a single geometry for [N, 2]); an empty polygon where nothing is covered.
 
     Triangles are simple polygons whatever their orientation, so inverted (folded) triangles
     need no repair; overlapping ones are merged by the union. Collinear (zero-area) triangles
     would be invalid polygons and cover no area, so they are dropped.
     """
-    tri = positions[..., cells, :]  # [..., C, 3, 2]
+    tri = np.asarray(positions)[..., cells, :]  # [..., C, 3, 2]
     e1, e2 = tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :]
     area2 = e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0]
     scale = (e1**2).sum(axis=-1) + (e2**2).sum(axis=-1)
     polygons = shapely.polygons(tri)
     polygons[np.abs(area2) <= _DEGENERATE * scale] = None
-    return shapely.union_all(polygons, axis=-1)
+    region = shapely.union_all(polygons, axis=-1)
+    empty = shapely.is_missing(region)
+    if np.ndim(region) == 0:
+        return shapely.Polygon() if empty else region
+    region[empty] = shapely.Polygon()
+    return region
+
+
+def region_iou(a, b) -> np.ndarray:
+    """Intersection over union of the areas of two (arrays of) shapely geometries; ValueError where
+    both are empty (the IoU is undefined). The one IoU every score uses."""
+    inter = shapely.area(shapely.intersection(a, b))
+    union = shapely.area(a) + shapely.area(b) - inter
+    if (np.asarray(union) <= 0).any():
+        raise ValueError("IoU undefined: both meshes cover zero area")
+    return inter / union
 
 
 def batch_iou(pred, true, cells) -> torch.Tensor:
@@ -152,23 +170,21 @@ def batch_iou(pred, true, cells) -> torch.Tensor:
         raise ValueError(f"pred {tuple(pred.shape)} and true {tuple(true.shape)} must both be [B, T, N, 2]")
     _check_finite("pred", pred)
     _check_finite("true", true)
-    cells = np.asarray(cells)
-    if cells.ndim != 2 or cells.shape[1] != 3 or not np.issubdtype(cells.dtype, np.integer):
-        raise ValueError(f"cells must be integer [C, 3] triangles, got {cells.dtype} {cells.shape}")
-    if cells.size and (cells.min() < 0 or cells.max() >= pred.shape[2]):
-        raise ValueError(f"cells index outside the {pred.shape[2]} mesh nodes")
-    a = _mesh_regions(pred.to(torch.float64).numpy(), cells)
-    b = _mesh_regions(true.to(torch.float64).numpy(), cells)
-    inter = shapely.area(shapely.intersection(a, b))
-    union = shapely.area(a) + shapely.area(b) - inter
-    if (union <= 0).any():
-        raise ValueError("IoU undefined: both meshes cover zero area")
-    return torch.from_numpy(inter / union)
+    cells = check_cells(cells, pred.shape[2])
+    a = mesh_region(pred.to(torch.float64).numpy(), cells)
+    b = mesh_region(true.to(torch.float64).numpy(), cells)
+    return torch.from_numpy(region_iou(a, b))
 
 
-def mesh_iou(pred, true, cells) -> float:
-    """IoU of one predicted and one true 2D mesh: pred, true [N, 2], cells [C, 3] (see `batch_iou`)."""
-    pred, true = torch.as_tensor(pred), torch.as_tensor(true)
-    if pred.dim() != 2:
-        raise ValueError(f"pred {tuple(pred.shape)} must be [N, 2]")
-    return batch_iou(pred[None, None], true[None, None], cells).item()
+def mesh_iou(pred_nodes, pred_cells, true_nodes, true_cells) -> float:
+    """IoU of the areas covered by two 2D meshes, each with its own nodes [N, 2] and triangles
+    [C, 3] (a prediction of the true mesh passes the same cells twice). ValueError if both cover
+    zero area."""
+    pred_nodes, true_nodes = (torch.as_tensor(x) for x in (pred_nodes, true_nodes))
+    for name, nodes in (("pred_nodes", pred_nodes), ("true_nodes", true_nodes)):
+        if nodes.dim() != 2 or nodes.shape[1] != 2:
+            raise ValueError(f"{name} {tuple(nodes.shape)} must be [N, 2]")
+        _check_finite(name, nodes)
+    a = mesh_region(pred_nodes.to(torch.float64).numpy(), check_cells(pred_cells, len(pred_nodes), "pred_cells"))
+    b = mesh_region(true_nodes.to(torch.float64).numpy(), check_cells(true_cells, len(true_nodes), "true_cells"))
+    return float(region_iou(a, b))

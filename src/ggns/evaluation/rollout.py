@@ -1,7 +1,7 @@
 """The one rollout engine: a learned step function applied autoregressively to a TrajectoryBatch.
 
 `step_fn(graph, state) -> (displacement [sumN, d], new_state)` predicts x_{t+1} - x_t in world
-(task-space) units from the graph of step t (`TrajectoryBatch.graph`) and carries any model
+(task-space) units from the graph of step t (`graphs.state.state_graph`) and carries any model
 state (e.g. an LSTM hidden state); state None means a fresh start. Collider positions and point
 clouds come from the data; fixed mesh nodes are set to their true positions every step.
 Positions returned are [steps + 1, sumN, d]: index 0 is the start state.
@@ -15,10 +15,11 @@ import torch
 from torch import Tensor
 from torch_geometric.data import HeteroData
 
-from ggns.evaluation.metrics import m_plus_10_starts
-from ggns.evaluation.schedules import EveryK, Never, Schedule
-from ggns.graphs.connectivity import Connectivity
-from ggns.graphs.state import TrajectoryBatch
+from .metrics import m_plus_10_starts
+from .schedules import EveryK, Never, Schedule
+from ..batch import TrajectoryBatch
+from ..graphs.connectivity import Connectivity
+from ..graphs.state import state_graph
 
 StepFn = Callable[[HeteroData, Any], tuple[Tensor, Any]]
 
@@ -43,7 +44,7 @@ def rollout(step_fn: StepFn, batch: TrajectoryBatch, schedule: Schedule, connect
     out = [pos]
     with torch.no_grad():
         for t in range(start, start + steps):
-            graph = batch.graph(t, pos, schedule.uses_points(t), connectivity, with_material)
+            graph = state_graph(batch, t, pos, schedule.uses_points(t), connectivity, with_material)
             displacement, state = step_fn(graph, state)
             pos = torch.where(fixed, batch.positions[t + 1], pos + displacement)
             _check_finite(pos, batch, t)
@@ -60,7 +61,7 @@ def one_step_predictions(step_fn: StepFn, batch: TrajectoryBatch, schedule: Sche
     out, state = [batch.positions[0]], None
     with torch.no_grad():
         for t in range(batch.num_steps - 1):
-            graph = batch.graph(t, batch.positions[t], schedule.uses_points(t), connectivity, with_material)
+            graph = state_graph(batch, t, batch.positions[t], schedule.uses_points(t), connectivity, with_material)
             displacement, state = step_fn(graph, state)
             pos = torch.where(fixed, batch.positions[t + 1], batch.positions[t] + displacement)
             _check_finite(pos, batch, t)

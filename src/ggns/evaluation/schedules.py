@@ -2,7 +2,10 @@
 
 Prediction step `s` (0 <= s <= T-2) predicts state s+1 from state s; when it uses points,
 it gets the point cloud observed at state s. Text forms (`parse_schedule`, `str`):
-"every:K" (K >= 1), "first:M" (M >= 0) and "never".
+"every:K" (K >= 1), "first:M" (M >= 0) and "never". Each schedule names its metric family
+(`Schedule.key`: k<K>, first<M>, never), the suffix of its metrics (rollout_mse_<key>). A model
+without point clouds gets every schedule as `Never` (`effective_schedule`, the one place that
+rule lives).
 """
 from __future__ import annotations
 
@@ -24,6 +27,11 @@ class Schedule(ABC):
     def uses_points(self, step: int) -> bool:
         """Whether prediction step `step` (state step -> step+1) uses the point cloud of state `step`."""
 
+    @property
+    @abstractmethod
+    def key(self) -> str:
+        """The metric-name suffix of this schedule: EveryK(5) -> "k5", Never() -> "never", FirstM(3) -> "first3"."""
+
     def mask(self, num_steps: int) -> torch.Tensor:
         """`uses_points` for steps 0..num_steps-1 (num_steps = T-1 predictions), bool [num_steps]."""
         _count(num_steps, "num_steps", 0)
@@ -43,6 +51,10 @@ class EveryK(Schedule):
         _count(step, "step", 0)
         return step % self.k == 0
 
+    @property
+    def key(self) -> str:
+        return f"k{self.k}"
+
     def __str__(self) -> str:
         return f"every:{self.k}"
 
@@ -54,6 +66,10 @@ class Never(Schedule):
     def uses_points(self, step: int) -> bool:
         _count(step, "step", 0)
         return False
+
+    @property
+    def key(self) -> str:
+        return "never"
 
     def __str__(self) -> str:
         return "never"
@@ -71,6 +87,10 @@ class FirstM(Schedule):
     def uses_points(self, step: int) -> bool:
         _count(step, "step", 0)
         return step < self.m
+
+    @property
+    def key(self) -> str:
+        return f"first{self.m}"
 
     def __str__(self) -> str:
         return f"first:{self.m}"
@@ -90,3 +110,16 @@ def parse_schedule(text: str) -> Schedule:
     raise ValueError(
         f"unknown point-cloud schedule {text!r}; expected 'every:K' (K >= 1), 'first:M' (M >= 0) or 'never'"
     )
+
+
+def effective_schedule(schedule: Schedule | str, uses_points: bool) -> Schedule:
+    """The schedule a model really runs: `schedule` for a model with point clouds, `Never()` for one
+    without (it never sees a point cloud, whatever the schedule says)."""
+    schedule = parse_schedule(schedule) if isinstance(schedule, str) else schedule
+    return schedule if uses_points else Never()
+
+
+def effective_schedules(schedules, uses_points: bool) -> list[Schedule]:
+    """`effective_schedule` of each, once per metric family (`key`), in order."""
+    chosen = [effective_schedule(s, uses_points) for s in schedules]
+    return list({s.key: s for s in chosen}.values())

@@ -5,7 +5,7 @@ checkpoint was (step, epoch, the scalar it was selected on).
 A family is one kind of evaluation that gets its own best checkpoint (`RolloutEvaluation` logs
 the scalars; the configs' ModelCheckpoints keep `best-<family>-step=<N>.ckpt`):
 
-    k<K>, first<M>, never   full-rollout MSE under that schedule (`schedule_key`): val/rollout_mse_<family>
+    k<K>, first<M>, never   full-rollout MSE under that schedule (`Schedule.key`): val/rollout_mse_<family>
     m10                     the m+10-step MSE: val/m10_mse
 
 Test metric -> family (`metric_family`): rollout_mse_<s>, rollout_iou_<s> and generated_mesh_iou_<s>

@@ -166,7 +166,7 @@ def plot_curves(curves: dict[str, dict], path: Path, against: str, title: str = 
             ax.set_yscale("log")
         if tag == "val/one_step_ratio":
             ax.axhline(RATIO_THRESHOLD, color="gray", ls="--", lw=1)
-    handles, labels = {}, []
+    handles = {}
     for ax in axes.flat:
         for handle, label in zip(*ax.get_legend_handles_labels()):
             handles.setdefault(label, handle)

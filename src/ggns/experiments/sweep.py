@@ -23,6 +23,23 @@ fit that left `last.ckpt` behind is resumed from it, so an interrupted sweep con
 stopped. `summarize` aggregates the finished runs into <output>/summary.{md,csv}. On a cluster,
 `slurm_script` renders a job array with one task per run (`python -m ggns sweep --config ...
 --task $SLURM_ARRAY_TASK_ID`).
+
+`run_baselines` scores the baselines of `ggns.baselines.scores` on the sweep's test trajectories and
+stores them beside its runs. It is configured by the sweep file's optional `baselines` section (2D
+datasets only):
+
+
+    baselines:
+      dataset: plate_small      # data preset whose test split is scored
+      data_dir: null            # overrides the preset's directory
+      max_trajectories: 9       # the first n test trajectories, as the runs' test (null: all)
+      alpha_shapes: true
+      static: true
+      initial_mesh: [ggns, mgn] # sweep models rolled out from the generated mesh, each under its
+                                # own evaluation schedules (the model's `eval_schedules`), each
+                                # schedule with the checkpoint its family was tested with
+
+Existing result files are kept (an interrupted sweep resumes); delete them to recompute.
 """
 from __future__ import annotations
 
@@ -37,15 +54,17 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from ..baselines.scores import (ALPHA_SHAPES, GENERATED_MESH_FILE, STATIC, alpha_shapes_metrics,
+                               generated_mesh_metrics, static_metrics)
+from ..baselines.scores import ROWS as BASELINE_ROWS
 from ..config import resolve_preset
 from ..data.module import SPLITS, SimulationDataModule
-from ..evaluation.evaluate import markdown_table, schedule_key
+from ..evaluation.evaluate import markdown_table
 from ..evaluation.schedules import parse_schedule
 from ..evaluation.selection import (CHECKPOINT_KEY, CHECKPOINTS_KEY, FAMILY_CHECKPOINT, M10, ONE_STEP, candidates,
                                     checkpoint_glob, checkpoint_info, describe, metric_family)
+from ..models.simulators import load_simulator
 from .aggregate import RunResult, aggregate, load_run, normalized_benefit, to_csv, to_markdown
-from .baselines import GENERATED_MESH_FILE, write_json
-from .baselines import ROWS as BASELINE_ROWS
 from .curves import LATE_STEPS, markdown_rows, plot_curves, read_scalars, variant_row
 from .findings import check_findings, check_targets, findings_markdown
 from .figures import write_figures
@@ -141,7 +160,7 @@ class Run(_Tested):
 
         legacy = newest("best-*.ckpt", lambda p: not FAMILY_CHECKPOINT.match(p.name))
         last = directory / "last.ckpt"
-        families = [schedule_key(parse_schedule(s)) for s in schedules] + ([M10] if m_plus_10 else []) + [ONE_STEP]
+        families = [parse_schedule(s).key for s in schedules] + ([M10] if m_plus_10 else []) + [ONE_STEP]
         out = {}
         for family in dict.fromkeys(families):
             found = [(c, newest(checkpoint_glob(c))) for c in candidates(family)]
@@ -160,7 +179,7 @@ class Run(_Tested):
 
     def test_parts(self) -> list[TestPart]:
         """One `TestPart` per distinct checkpoint of `checkpoints`, in `<test_dir>/<checkpoint name>`."""
-        schedules = {schedule_key(parse_schedule(s)): s for s in self._eval_settings()[0]}
+        schedules = {parse_schedule(s).key: s for s in self._eval_settings()[0]}
         groups: dict[Path, list[str]] = {}
         for family, selection in self.checkpoints().items():
             groups.setdefault(selection.checkpoint, []).append(family)
@@ -346,14 +365,9 @@ def _sections(table) -> list[str]:
 def _steps_logged(directory: Path) -> int | None:
     """The largest step of any scalar in the TensorBoard event files of a fit (its training length,
     to within `log_every_n_steps`; validation is logged at the step it ran), or None."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    steps = []
-    for path in directory.glob("events.out.tfevents.*"):
-        events = EventAccumulator(str(path), size_guidance={"scalars": 0, "images": 1})
-        events.Reload()
-        steps += [e.step for tag in events.Tags()["scalars"] for e in events.Scalars(tag)]
-    return max(steps) if steps else None
+    scalars = read_scalars(directory) if directory.is_dir() else {}
+    # read_scalars counts optimizer steps completed (TensorBoard step + 1)
+    return int(max(steps.max() for steps, _, _ in scalars.values())) - 1 if scalars else None
 
 
 def _training_markdown(runs: list[Run], results: list[RunResult]) -> str:
@@ -437,3 +451,64 @@ def summarize(sweep: dict, log=print) -> Path:
     path.write_text("\n".join(lines) + "\n")
     log(f"wrote {path} and {output / 'summary.csv'}")
     return path
+
+
+# ---- the baselines -----------------------------------------------------------------------------
+def write_json(path: Path, data: dict) -> None:
+    """Write via a temporary file and rename, so an interrupted write leaves no partial result."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2))
+    tmp.replace(path)
+
+
+def _test_trajectories(spec: dict):
+    module = SimulationDataModule(spec.get("dataset", "plate_small"), data_dir=spec.get("data_dir"),
+                                  max_eval_trajectories=spec.get("max_trajectories"), generate_missing=False)
+    return module.trajectories("test")
+
+
+def baseline_spec(sweep: dict) -> dict:
+    """The sweep's `baselines` section, checked ({} when absent)."""
+    spec = sweep.get("baselines") or {}
+    unknown = set(spec) - {"dataset", "data_dir", "max_trajectories", "alpha_shapes", "static", "initial_mesh"}
+    if unknown:
+        raise ValueError(f"sweep baselines: unknown keys {sorted(unknown)}")
+    models = spec.get("initial_mesh") or []
+    if isinstance(models, str):
+        models = [models]
+    missing = [m for m in models if m not in sweep["models"]]
+    if missing:
+        raise ValueError(f"sweep baselines: initial_mesh names models {missing} that the sweep does not have "
+                         f"({sorted(sweep['models'])})")
+    return {**spec, "initial_mesh": list(models)}
+
+
+def run_baselines(sweep: dict, log=print) -> list[Path]:
+    """Compute the missing baseline results of the sweep (see the module docstring): Alpha Shapes
+    and the static reference once, and the generated-mesh rollouts for every finished run of the `initial_mesh` models.
+    Returns the files written."""
+    spec = baseline_spec(sweep)
+    written: list[Path] = []
+    trajectories = None
+    for row, compute in ((ALPHA_SHAPES, alpha_shapes_metrics), (STATIC, static_metrics)):
+        path = Path(sweep["output"]) / row / "test_metrics.json"
+        if spec.get(row) and not path.is_file():
+            trajectories = trajectories if trajectories is not None else _test_trajectories(spec)
+            log(f"baseline {row} on {len(trajectories)} test trajectories")
+            write_json(path, compute(trajectories))
+            written.append(path)
+    for run in runs_of(sweep):
+        path = run.test_dir / GENERATED_MESH_FILE
+        if run.model not in spec["initial_mesh"] or not run.finished or path.is_file():
+            continue
+        trajectories = trajectories if trajectories is not None else _test_trajectories(spec)
+        log(f"baseline initial mesh generation: {run.model} seed {run.seed}")
+        metrics = {}
+        for part in run.test_parts():  # each schedule with the checkpoint selected on its family
+            if part.schedules:
+                model = load_simulator(part.checkpoint, map_location="cpu")
+                metrics.update(generated_mesh_metrics(model, trajectories, part.schedules))
+        write_json(path, metrics)
+        written.append(path)
+    return written

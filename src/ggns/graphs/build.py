@@ -29,12 +29,6 @@ from .connectivity import Connectivity
 from .types import MESH_EDGE, WORLD_EDGE
 
 
-def directed_mesh_edges(edges: Tensor) -> Tensor:
-    """Undirected edges [E, 2] -> directed edge_index [2, 2E] (each edge in both directions)."""
-    edges = torch.as_tensor(edges, dtype=torch.long)
-    return torch.cat([edges.T, edges.T.flip(0)], dim=1)
-
-
 def relative_features(pos_src: Tensor, pos_dst: Tensor, edge_index: Tensor) -> Tensor:
     """[pos_src[i] - pos_dst[j], norm] per edge (i, j): [E, d + 1]."""
     rel = pos_src[edge_index[0]] - pos_dst[edge_index[1]]

@@ -26,9 +26,10 @@ import torch
 import torch_cluster
 
 from ..config import load_config
-from ..data.trajectory import Trajectory
+from ..trajectory import Trajectory
+from ..batch import TrajectoryBatch
 from .connectivity import Connectivity, load_connectivity
-from .state import TrajectoryBatch
+from .state import state_graph
 from .types import MESH_EDGE, WORLD_EDGE
 
 
@@ -53,13 +54,13 @@ def measure(trajectories: list[Trajectory], graph: Connectivity, baseline_graph:
                 pair = torch_cluster.knn(points, points, 2)  # self and the nearest other point
                 other = pair[:, pair[0] != pair[1]]
                 spacing.append((points[other[0]] - points[other[1]]).norm(dim=1).median().item())
-            g = batch.graph(t, batch.positions[t], True, graph)
+            g = state_graph(batch, t, batch.positions[t], True, graph)
             sizes = {et: g[et].edge_index.size(1) for et in g.edge_types}
             edges.append(sum(sizes.values()))
             for et, size in sizes.items():
                 per_type.setdefault(et, []).append(size)
             m_p.append(sizes.get(("point", "near", "mesh"), 0) / len(traj.rest_positions))
-            b = batch.graph(t, batch.positions[t], False, baseline_graph)
+            b = state_graph(batch, t, batch.positions[t], False, baseline_graph)
             world.append((b[WORLD_EDGE].edge_index.size(1) if WORLD_EDGE in b.edge_types else 0) / len(traj.rest_positions))
     lengths = np.concatenate([_edge_lengths(t) for t in trajectories])
     motion = np.concatenate([np.diff(t.positions, axis=0)[:, ~t.fixed].ravel() for t in trajectories])

@@ -1,132 +1,94 @@
-"""B trajectories on one device, concatenated PyG-style, and the one place that turns a
-simulation state into model input (`TrajectoryBatch.graph`).
-
-Shapes: B trajectories, T states each (all equal), sumN / sumK / sumC mesh nodes / collider
-vertices / cells over all trajectories, P_t points of all trajectories at step t, d dims.
-Indices (edges, cells) are global, i.e. offset by the nodes of the trajectories before.
-"""
+"""The one place that turns a simulation state into model input: `state_graph`, the batched
+HeteroData of step t -> t+1 of a `TrajectoryBatch` (mesh at given positions, collider, optional
+point clouds, optional material), and `ConstructionTimer`, which sums the time spent in it (the
+benchmarks' graph construction share)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+import time
 
-import numpy as np
 import torch
 from torch import Tensor
 from torch_geometric.data import HeteroData
 
-from ggns.data.trajectory import Trajectory
-from ggns.graphs.build import build_graph, directed_mesh_edges
-from ggns.graphs.connectivity import Connectivity
+from ..batch import TrajectoryBatch
+from .build import build_graph
+from .connectivity import Connectivity
 
 
-@dataclass
-class TrajectoryBatch:
-    rest: Tensor  # [sumN, d] mesh rest positions
-    edges: Tensor  # [2, sumE] directed mesh edges (both directions), global indices
-    fixed: Tensor  # [sumN] bool, Dirichlet nodes
-    mesh_batch: Tensor  # [sumN] long, trajectory of each node
-    positions: Tensor  # [T, sumN, d] true mesh positions
-    collider: Tensor | None  # [T, sumK, d] collider vertices, None when no trajectory has any
-    collider_batch: Tensor | None  # [sumK] long
-    points: list[Tensor]  # T x [P_t, d], point clouds of all trajectories at step t
-    point_batch: list[Tensor]  # T x [P_t] long, trajectory of each point
-    material: Tensor  # [B] Poisson ratios
-    cells: Tensor  # [sumC, d+1] long, global node indices
-    node_offsets: tuple[int, ...]  # B+1 host ints: trajectory b owns nodes node_offsets[b]:node_offsets[b+1]
-    cell_offsets: tuple[int, ...]  # B+1 host ints, likewise for cells
+_ACTIVE_TIMERS: list["ConstructionTimer"] = []
 
-    @property
-    def num_graphs(self) -> int:
-        return len(self.node_offsets) - 1
 
-    @property
-    def num_steps(self) -> int:
-        return int(self.positions.shape[0])
+class ConstructionTimer:
+    """`with ConstructionTimer(device) as timer:` sums, in timer.seconds and timer.calls, the time
+    spent in `state_graph` inside the block, synchronizing `device` (CUDA) around each call so that
+    the time is the construction's own. Nested timers all count."""
 
-    @property
-    def device(self) -> torch.device:
-        return self.positions.device
+    def __init__(self, device: torch.device | str | None = None):
+        self.device = torch.device(device) if device is not None else None
+        self.seconds, self.calls = 0.0, 0
 
-    def to(self, device) -> TrajectoryBatch:
-        """A copy with every tensor on `device` (host offsets unchanged)."""
-        def move(value):
-            if isinstance(value, Tensor):
-                return value.to(device)
-            if isinstance(value, list):
-                return [v.to(device) for v in value]
-            return value
+    def __enter__(self) -> ConstructionTimer:
+        _ACTIVE_TIMERS.append(self)
+        return self
 
-        return TrajectoryBatch(**{f.name: move(getattr(self, f.name)) for f in fields(self)})
+    def __exit__(self, *exc) -> None:
+        _ACTIVE_TIMERS.remove(self)
 
-    @classmethod
-    def from_trajectories(cls, trajs: list[Trajectory], device=None, dtype=torch.float32) -> TrajectoryBatch:
-        """Concatenate trajectories with equal T and d (ValueError otherwise) on `device`."""
-        if not trajs:
-            raise ValueError("TrajectoryBatch needs at least one trajectory")
-        shapes = [(t.num_steps, t.dim) for t in trajs]
-        if len(set(shapes)) > 1:
-            raise ValueError(f"trajectories in one batch need equal step counts T and dimensions d, got (T, d) = {shapes}")
-        num_steps = shapes[0][0]
-        n = np.cumsum([0] + [len(t.rest_positions) for t in trajs])
-        c = np.cumsum([0] + [len(t.cells) for t in trajs])
+    def reset(self) -> None:
+        self.seconds, self.calls = 0.0, 0
 
-        def cat(arrays, kind=dtype, axis=0):
-            return torch.as_tensor(np.concatenate(arrays, axis=axis)).to(device=device, dtype=kind)
+    def sync(self) -> None:
+        if self.device is not None and self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
 
-        def batch_of(sizes):
-            return torch.repeat_interleave(torch.arange(len(trajs)), torch.as_tensor(sizes)).to(device)
 
-        k = [t.collider_positions.shape[1] for t in trajs]
-        points, point_batch = [], []
-        for s in range(num_steps):
-            clouds = [t.point_cloud(s) for t in trajs]
-            points.append(cat(clouds))
-            point_batch.append(batch_of([len(p) for p in clouds]))
-        return cls(
-            rest=cat([t.rest_positions for t in trajs]),
-            edges=directed_mesh_edges(cat([t.edges + o for t, o in zip(trajs, n)], torch.long)),
-            fixed=cat([t.fixed for t in trajs], torch.bool),
-            mesh_batch=batch_of(np.diff(n)),
-            positions=cat([t.positions for t in trajs], axis=1),
-            collider=cat([t.collider_positions for t in trajs], axis=1) if sum(k) else None,
-            collider_batch=batch_of(k) if sum(k) else None,
-            points=points,
-            point_batch=point_batch,
-            material=torch.tensor([float(t.poissons_ratio) for t in trajs], dtype=dtype, device=device),
-            cells=cat([t.cells + o for t, o in zip(trajs, n)], torch.long),
-            node_offsets=tuple(int(i) for i in n),
-            cell_offsets=tuple(int(i) for i in c),
-        )
+def state_graph(batch: TrajectoryBatch, t: int, mesh_pos: Tensor, use_points: bool | Tensor,
+                connectivity: Connectivity, with_material: bool = False) -> HeteroData:
+    """`build_state_graph`, timed by the active `ConstructionTimer`s (if any)."""
+    if not _ACTIVE_TIMERS:
+        return build_state_graph(batch, t, mesh_pos, use_points, connectivity, with_material)
+    for timer in _ACTIVE_TIMERS:
+        timer.sync()
+    start = time.perf_counter()
+    graph = build_state_graph(batch, t, mesh_pos, use_points, connectivity, with_material)
+    for timer in _ACTIVE_TIMERS:
+        timer.sync()
+    elapsed = time.perf_counter() - start
+    for timer in _ACTIVE_TIMERS:
+        timer.seconds += elapsed
+        timer.calls += 1
+    return graph
 
-    def graph(self, t: int, mesh_pos: Tensor, use_points: bool | Tensor, connectivity: Connectivity,
-              with_material: bool = False) -> HeteroData:
-        """The batched model input for step t -> t+1 (0 <= t <= T-2): mesh at mesh_pos [sumN, d],
-        collider at t with velocity to t+1, the point clouds at t of the trajectories whose
-        use_points (bool, or bool [B] per trajectory) is True, Poisson ratios if with_material."""
-        if not 0 <= t < self.num_steps - 1:
-            raise IndexError(f"graph step t={t} outside [0, {self.num_steps - 2}] (needs the collider at t+1)")
-        points, point_batch = None, None
-        if isinstance(use_points, Tensor):
-            if use_points.shape != (self.num_graphs,) or use_points.dtype != torch.bool:
-                raise ValueError(f"use_points must be a bool or a bool tensor [B={self.num_graphs}], "
-                                 f"got {use_points.dtype} {tuple(use_points.shape)}")
-            keep = use_points.to(self.device)[self.point_batch[t]]
-            points, point_batch = self.points[t][keep], self.point_batch[t][keep]
-        elif use_points:
-            points, point_batch = self.points[t], self.point_batch[t]
-        has_collider = self.collider is not None
-        return build_graph(
-            mesh_pos=mesh_pos,
-            mesh_rest=self.rest,
-            mesh_edges=self.edges,
-            fixed=self.fixed,
-            mesh_batch=self.mesh_batch,
-            collider_pos=self.collider[t] if has_collider else None,
-            collider_next=self.collider[t + 1] if has_collider else None,
-            collider_batch=self.collider_batch,
-            points=points,
-            point_batch=point_batch,
-            connectivity=connectivity,
-            num_graphs=self.num_graphs,
-            material=self.material if with_material else None,
-        )
+
+def build_state_graph(batch: TrajectoryBatch, t: int, mesh_pos: Tensor, use_points: bool | Tensor,
+                      connectivity: Connectivity, with_material: bool = False) -> HeteroData:
+    """The batched model input for step t -> t+1 (0 <= t <= T-2): mesh at mesh_pos [sumN, d],
+    collider at t with velocity to t+1, the point clouds at t of the trajectories whose
+    use_points (bool, or bool [B] per trajectory) is True, Poisson ratios if with_material."""
+    if not 0 <= t < batch.num_steps - 1:
+        raise IndexError(f"graph step t={t} outside [0, {batch.num_steps - 2}] (needs the collider at t+1)")
+    points, point_batch = None, None
+    if isinstance(use_points, Tensor):
+        if use_points.shape != (batch.num_graphs,) or use_points.dtype != torch.bool:
+            raise ValueError(f"use_points must be a bool or a bool tensor [B={batch.num_graphs}], "
+                             f"got {use_points.dtype} {tuple(use_points.shape)}")
+        keep = use_points.to(batch.device)[batch.point_batch[t]]
+        points, point_batch = batch.points[t][keep], batch.point_batch[t][keep]
+    elif use_points:
+        points, point_batch = batch.points[t], batch.point_batch[t]
+    has_collider = batch.collider is not None
+    return build_graph(
+        mesh_pos=mesh_pos,
+        mesh_rest=batch.rest,
+        mesh_edges=batch.edges,
+        fixed=batch.fixed,
+        mesh_batch=batch.mesh_batch,
+        collider_pos=batch.collider[t] if has_collider else None,
+        collider_next=batch.collider[t + 1] if has_collider else None,
+        collider_batch=batch.collider_batch,
+        points=points,
+        point_batch=point_batch,
+        connectivity=connectivity,
+        num_graphs=batch.num_graphs,
+        material=batch.material if with_material else None,
+    )

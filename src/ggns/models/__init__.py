@@ -1,5 +1,5 @@
 """Models: the Encode-Process-Decode core shared by GGNS and MGN, and feature normalization."""
-from ggns.models.core import EncodeProcessDecode, GraphNetBlock, graph_features, mlp
-from ggns.models.normalization import Normalizer, NormalizerDict, type_key
+from .core import EncodeProcessDecode, GraphNetBlock, graph_features, mlp
+from .normalization import Normalizer, NormalizerDict, type_key
 
 __all__ = ["EncodeProcessDecode", "GraphNetBlock", "Normalizer", "NormalizerDict", "graph_features", "mlp", "type_key"]

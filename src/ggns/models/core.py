@@ -35,8 +35,8 @@ import torch
 from torch import Tensor, nn
 from torch_geometric.data import HeteroData
 
-from ggns.graphs.types import EDGE_TYPES, NODE_TYPES
-from ggns.models.normalization import DEFAULT_STD_FLOOR, NodeOrEdgeType, NormalizerDict, type_key
+from ..graphs.types import EDGE_TYPES, NODE_TYPES
+from .normalization import DEFAULT_STD_FLOOR, NodeOrEdgeType, NormalizerDict, type_key
 
 EdgeType = tuple[str, str, str]
 TYPE_ENCODINGS = ("per_type", "one_hot")

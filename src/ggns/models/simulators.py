@@ -31,9 +31,10 @@ from torch_geometric.data import HeteroData
 
 from ..evaluation.evaluate import MetricTable, evaluate_batch, markdown_table
 from ..evaluation.rollout import rollout
-from ..evaluation.schedules import EveryK, Never, Schedule, parse_schedule
+from ..evaluation.schedules import EveryK, Schedule, effective_schedule, parse_schedule
+from ..batch import TrajectoryBatch
 from ..graphs.connectivity import Connectivity, load_connectivity
-from ..graphs.state import TrajectoryBatch
+from ..graphs.state import state_graph
 from ..graphs.types import MESH_EDGE
 from .core import EncodeProcessDecode, graph_features
 from .lr_schedule import scheduled_lr, validate_schedule
@@ -159,7 +160,7 @@ class GraphSimulator(pl.LightningModule):
                                      self.hparams.noise_field_wavelength,
                                      mixture=self.hparams.noise_field_mixture)
                 pos = pos + field * free
-            graph = batch.graph(t, pos, use_points, self.connectivity, self.with_material)
+            graph = state_graph(batch, t, pos, use_points, self.connectivity, self.with_material)
             samples.append((graph, batch.positions[t + 1] - pos))
         return samples
 
@@ -250,7 +251,7 @@ class GraphSimulator(pl.LightningModule):
     def evaluate(self, batch: TrajectoryBatch, schedules=None, **kwargs) -> dict[str, Tensor]:
         """Per-trajectory paper metrics of this model on `batch` (`evaluation.evaluate_batch`)."""
         schedules = self.schedules if schedules is None else schedules
-        one_step = EveryK(1) if self.uses_points else Never()
+        one_step = effective_schedule(EveryK(1), self.uses_points)
         with torch.no_grad():
             return evaluate_batch(self.step, batch, self.connectivity, schedules, with_material=self.with_material,
                                   one_step_schedule=one_step, **kwargs)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..data.trajectory import Trajectory
+from ..trajectory import Trajectory
 from ..geometry import cell_edges
 from ..sim.material import Material
 from ..sim.run import simulate

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from ggns.geometry import boundary_facets
+from ..geometry import boundary_facets
 
 o3c = o3d.core
 

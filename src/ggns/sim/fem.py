@@ -19,6 +19,7 @@ import math
 
 import torch
 
+from ..geometry import check_cells
 from .material import Material
 
 
@@ -46,13 +47,11 @@ class ElasticBody:
 
     def __init__(self, rest_positions: torch.Tensor, cells: torch.Tensor, material: Material):
         self.X = rest_positions.to(torch.float64)
-        self.cells = cells.to(torch.long)
         self.material = material
         n, d = self.X.shape
-        if self.cells.ndim != 2 or self.cells.shape[1] != d + 1:
-            raise ValueError(f"cells must be [C, {d + 1}] for a {d}D mesh, got {tuple(self.cells.shape)}")
-        if self.cells.min() < 0 or self.cells.max() >= n:
-            raise ValueError(f"cells index nodes outside 0..{n - 1}")
+        cells = torch.as_tensor(cells)
+        self.cells = torch.as_tensor(check_cells(cells.cpu().numpy(), n, corners=d + 1), dtype=torch.long,
+                                     device=cells.device)
         self.num_nodes, self.dim = n, d
         Xe = self.X[self.cells]  # [C, d+1, d]
         Dm = (Xe[:, 1:] - Xe[:, :1]).transpose(1, 2)  # columns X_a - X_0

@@ -1,6 +1,6 @@
 """The speed/accuracy trade: time per rollout step against rollout error, for the ground-truth
 simulator at coarser time steps and for learned simulators (checkpoints), as a CSV and a Pareto
-plot (`python -m ggns bench tradeoff`). A first version.
+plot (`python -m ggns bench tradeoff`).
 
 Simulator points (`simulator_points`): the plate preset records one state per `frame_dt` and
 integrates it with `scene.substeps` solver steps (plate: 1). The time resolution is coarsened by
@@ -12,7 +12,7 @@ substep), and factor c uses reference_substeps / c substeps. c = 1 is the refere
 generator, so its error is the dataset's time-discretization error. Trajectories are those of
 the preset's test split (same combination and seed as `generate`), simulated by the scene's
 `make_trajectory` with the sensor replaced by a no-op, on 1 torch thread (as a generation
-worker); the time is the whole call (scene set-up included, sensor excluded) divided by the
+worker; `timing.time_trajectories`, the timer of `bench sim` too); the time is the whole call (scene set-up included, sensor excluded) divided by the
 T - 1 simulated frames, median over the trajectories. Mesh resolution: the plate scene exposes
 `scene.grid_nodes` (nodes per side); `grid_nodes` overrides it for the simulator (reference and
 coarse runs alike) and the node count is recorded. `tradeoff` takes several resolutions: at the
@@ -26,7 +26,7 @@ Model points (`model_points`): each checkpoint is loaded with `models.simulators
 (the class is stored in the checkpoint). Rollouts of whole test trajectories per
 point-cloud schedule (schedules with point clouds only for models that use them): ms per step
 for 1 trajectory and for `batch` trajectories at once (test trajectories repeated if fewer), the
-median of `repeats` rollouts after a warm-up (`bench._bench_rollout`), on the CPU and, when
+median of `repeats` rollouts after a warm-up (`timing.time_rollout`), on the CPU and, when
 present, CUDA; the rollout MSE (`metrics.rollout_mse`, all nodes, as in `evaluate_batch`) of the
 first `trajectories` test trajectories against the dataset.
 
@@ -40,26 +40,27 @@ from __future__ import annotations
 import csv
 import math
 import statistics
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..batch import TrajectoryBatch
+from ..config import load_config
+from ..data.generate import generate, split_path, trajectory_jobs
+from ..data.module import SimulationDataModule
+from ..data.schema import read_trajectories
+from ..evaluation.evaluate import split_trajectories
+from ..evaluation.metrics import rollout_mse
+from ..evaluation.schedules import effective_schedules
 from ..models.simulators import load_simulator
+from ..scenes import SCENES
+from ..viz import plt, save_figure
+from .report import print_table
+from .timing import NoSensor, default_devices, time_rollout, time_trajectories
 
 COLUMNS = ("kind", "name", "setting", "device", "nodes", "steps", "trajectories", "ms_per_step_1",
            "batch", "ms_per_step_batched", "ms_per_trajectory_step", "rollout_mse", "reference", "pareto")
-
-
-class _NoSensor:
-    """Stands in for the depth sensor: an empty point cloud per state (the simulator alone is timed)."""
-
-    def __init__(self, dim: int = 2):
-        self.dim = dim
-
-    def observe(self, *args, **kwargs) -> np.ndarray:
-        return np.zeros((0, self.dim), dtype=np.float32)
 
 
 def reference_substeps_for(preset_substeps: int, coarsen) -> int:
@@ -71,10 +72,6 @@ def simulator_points(config: dict, trajectories: int = 4, coarsen=(1, 2, 5), gri
                      reference_substeps: int | None = None, split: str = "test") -> list[dict]:
     """One row per coarsening factor (module docstring): ms per simulated frame and rollout MSE
     against the reference (substeps `reference_substeps`); the first `trajectories` of `split`."""
-    from ..data.generate import _jobs
-    from ..evaluation.metrics import rollout_mse
-    from ..scenes import SCENES
-
     coarsen = sorted({int(c) for c in coarsen})
     if not coarsen or coarsen[0] < 1 or trajectories < 1:
         raise ValueError(f"need coarsening factors >= 1 and trajectories >= 1, got {coarsen}, {trajectories}")
@@ -89,21 +86,14 @@ def simulator_points(config: dict, trajectories: int = 4, coarsen=(1, 2, 5), gri
     module = SCENES[scene["name"]]
     base = {**config, "scene": scene}
     module.check_config({**base, "scene": {**scene, "substeps": reference}})
-    jobs = _jobs(base, split, trajectories)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    runs: dict[int, list] = {}
-    try:
-        for c in coarsen:
-            cfg = {**base, "scene": {**scene, "substeps": reference // c}}
-            runs[c] = []
-            for combination, seed in jobs:
-                start = time.perf_counter()
-                traj = module.make_trajectory(cfg, combination, seed, _NoSensor(int(scene.get("dim", 2))))
-                runs[c].append((time.perf_counter() - start, traj))
-        truth = np.stack([t.positions for _, t in _reference_runs(reference, base, scene, jobs, module, runs)])
-    finally:
-        torch.set_num_threads(threads)
+    jobs = trajectory_jobs(base, split, trajectories)
+    sensor = NoSensor(int(scene.get("dim", 2)))
+    runs = {c: time_trajectories(module, {**base, "scene": {**scene, "substeps": reference // c}}, jobs, sensor)
+            for c in coarsen}
+    # the reference: the c = 1 runs if made, else simulated now (untimed)
+    reference_runs = runs[1] if 1 in runs else \
+        time_trajectories(module, {**base, "scene": {**scene, "substeps": reference}}, jobs, sensor)
+    truth = np.stack([t.positions for _, t in reference_runs])
     rows = []
     for c in coarsen:
         pred = np.stack([t.positions for _, t in runs[c]])
@@ -119,25 +109,10 @@ def simulator_points(config: dict, trajectories: int = 4, coarsen=(1, 2, 5), gri
     return rows
 
 
-def _reference_runs(reference, base, scene, jobs, module, runs):
-    """The reference trajectories: the c = 1 run if it was made, else simulated now (untimed)."""
-    if 1 in runs:
-        return runs[1]
-    cfg = {**base, "scene": {**scene, "substeps": reference}}
-    return [(0.0, module.make_trajectory(cfg, combination, seed, _NoSensor(int(scene.get("dim", 2))))) for combination, seed in jobs]
-
-
-def default_devices() -> list[str]:
-    return ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-
-
 def resolution_tests(config: dict, grid_nodes: int, count: int, log=print):
     """`count` test trajectories of the preset `config` at `grid_nodes` nodes per side (its scenes
     and seeds, real point clouds), generated once into `<output>_grid<grid_nodes>/test.h5` and
     regenerated when that file holds fewer. Returns (trajectories, data directory)."""
-    from ..data.generate import generate, split_path
-    from ..data.schema import read_trajectories
-
     if int(grid_nodes) < 2 or count < 1:
         raise ValueError(f"need grid_nodes >= 2 and count >= 1, got {grid_nodes}, {count}")
     output = Path(f"{config['output']}_grid{int(grid_nodes)}")
@@ -157,13 +132,6 @@ def model_points(checkpoints: dict, dataset: str = "plate_small", schedules=("ev
                  tests: list | None = None, reference: str | None = None) -> list[dict]:
     """One row per checkpoint x schedule x device (module docstring). `tests`: the test
     trajectories to use instead of the dataset's test split (`reference` then names them)."""
-    from ..bench import _bench_rollout
-    from ..data.module import SimulationDataModule
-    from ..evaluation.evaluate import split_trajectories
-    from ..evaluation.metrics import rollout_mse
-    from ..evaluation.schedules import parse_schedule
-    from ..graphs.state import TrajectoryBatch
-
     if trajectories < 1 or batch < 1 or repeats < 1:
         raise ValueError("trajectories, batch and repeats must be >= 1")
     if tests is None:
@@ -175,8 +143,7 @@ def model_points(checkpoints: dict, dataset: str = "plate_small", schedules=("ev
     rows = []
     for name, path in checkpoints.items():
         model = load_simulator(path, map_location="cpu")
-        chosen = [parse_schedule(s) if isinstance(s, str) else s for s in schedules]
-        chosen = [s for s in chosen if model.uses_points or str(s) == "never"] or [parse_schedule("never")]
+        chosen = effective_schedules(schedules, model.uses_points)
         for device in devices or default_devices():
             device = torch.device(device)
             model.to(device)
@@ -185,8 +152,8 @@ def model_points(checkpoints: dict, dataset: str = "plate_small", schedules=("ev
             error_batch = TrajectoryBatch.from_trajectories(scored, device=device)
             steps = one.num_steps - 1
             for schedule in chosen:
-                ms_one = _bench_rollout(model, one, schedule, steps, repeats, device)["ms per step"]
-                ms_many = _bench_rollout(model, many, schedule, steps, repeats, device)["ms per step"]
+                ms_one = time_rollout(model, one, schedule, steps, repeats, device)["ms per step"]
+                ms_many = time_rollout(model, many, schedule, steps, repeats, device)["ms per step"]
                 pred = split_trajectories(model.rollout(error_batch, schedule), error_batch)
                 true = split_trajectories(error_batch.positions, error_batch)
                 mse = float(np.mean([rollout_mse(p, t)[0] for p, t in zip(pred, true)]))
@@ -222,10 +189,6 @@ def write_csv(rows: list[dict], path: str | Path) -> Path:
 def pareto_plot(rows: list[dict], path: str | Path) -> Path:
     """Log-log plot of rollout MSE against ms per trajectory-step: one labelled marker per point,
     the simulator's points joined by a line, the Pareto front as a dashed step line."""
-    import matplotlib.pyplot as plt
-
-    from ..viz import save_figure
-
     if not rows:
         raise ValueError("nothing to plot")
     xs = np.array([r["ms_per_trajectory_step"] for r in rows], dtype=float)
@@ -267,26 +230,12 @@ def pareto_plot(rows: list[dict], path: str | Path) -> Path:
     return save_figure(fig, path)
 
 
-def print_table(rows: list[dict]) -> None:
-    keys = [k for k in COLUMNS if any(k in r for r in rows)]
-    cells = [[_fmt(r.get(k, "")) for k in keys] for r in rows]
-    widths = [max(len(k), *(len(c[j]) for c in cells)) for j, k in enumerate(keys)]
-    for line in [keys] + cells:
-        print("  ".join(v.rjust(w) for v, w in zip(line, widths)))
-
-
-def _fmt(value) -> str:
-    return f"{value:.3g}" if isinstance(value, float) else str(value)
-
-
 def tradeoff(dataset: str = "plate_small", checkpoints: dict | None = None, trajectories: int = 4, coarsen=(1, 2, 5),
              output_dir: str | Path = "lightning_logs/tradeoff", schedules=("every:1", "never"), batch: int = 32,
              repeats: int = 3, grid_nodes=None, data_dir: str | None = None) -> list[dict]:
     """Simulator and model points at each mesh resolution in `grid_nodes` (nodes per side; an int,
     a list, or None for the preset's); writes <output_dir>/tradeoff.csv and tradeoff.png and
     prints the table."""
-    from ..config import load_config
-
     config = load_config(dataset)
     preset = int(config["scene"].get("grid_nodes", 0)) or None
     resolutions = [preset] if grid_nodes is None else [int(n) for n in np.atleast_1d(grid_nodes)]
@@ -306,6 +255,6 @@ def tradeoff(dataset: str = "plate_small", checkpoints: dict | None = None, traj
         row["pareto"] = on_front
     out = Path(output_dir)
     csv_path, png_path = write_csv(rows, out / "tradeoff.csv"), pareto_plot(rows, out / "tradeoff.png")
-    print_table(rows)
+    print_table(rows, COLUMNS)
     print(f"\nwrote {csv_path} and {png_path}")
     return rows

@@ -147,11 +147,19 @@ def markdown_rows(rows: list[dict], threshold: float = RATIO_THRESHOLD, label: s
     return "\n".join(lines) + "\n"
 
 
-def plot_curves(curves: dict[str, dict], path: Path, against: str, title: str = "variant") -> Path:
+def plot_curves(curves: dict[str, dict], path: Path, against: str, title: str = "variant",
+                groups: dict[str, tuple[str, int]] | None = None) -> Path:
     """One panel per `CURVES` tag, one line per variant (or run); x: optimizer steps (against="steps")
-    or training seconds ("seconds"). curves: name -> its `read_scalars`; title: the legend's title."""
+    or training seconds ("seconds"). curves: name -> its `read_scalars`; title: the legend's title;
+    groups: name -> (group, member), drawn with one colour per group and one line style per member
+    (e.g. a sweep's runs: model and seed)."""
     from ..viz import plt, save_figure
 
+    styles = {}
+    if groups:
+        colours = {g: f"C{i % 10}" for i, g in enumerate(dict.fromkeys(g for g, _ in groups.values()))}
+        dashes = ("-", "--", ":", "-.")
+        styles = {name: {"color": colours[g], "ls": dashes[m % len(dashes)]} for name, (g, m) in groups.items()}
     fig, axes = plt.subplots(2, 4, figsize=(18, 8), constrained_layout=True)
     for ax, tag in zip(axes.flat, CURVES):
         for variant, scalars in curves.items():
@@ -159,7 +167,8 @@ def plot_curves(curves: dict[str, dict], path: Path, against: str, title: str = 
                 continue
             steps, _, values = scalars[tag]
             x = steps if against == "steps" else training_seconds(scalars, steps)[0]
-            ax.plot(x, values, "o-" if tag.startswith("val/") else "-", ms=3, lw=1, label=variant)
+            ax.plot(x, values, marker="o" if tag.startswith("val/") else None, ms=3, lw=1, label=variant,
+                    **styles.get(variant, {"ls": "-"}))
         ax.set_title(tag)
         ax.set_xlabel("optimizer steps" if against == "steps" else "training seconds")
         if tag != "train/lr" and ax.has_data():

@@ -403,7 +403,9 @@ def _learning_markdown(runs: list[Run], output: Path) -> list[str]:
     curves = {f"{run.model} seed {run.seed}": read_scalars(run.fit_dir) if run.fit_dir.is_dir() else {}
               for run in runs}
     rows = [variant_row(name, [], scalars) for name, scalars in curves.items()]
-    figure = plot_curves(curves, output / "learning_curves.png", "steps", title="run")
+    groups = {f"{run.model} seed {run.seed}": (run.model, i) for run in runs
+              for i, seed in enumerate(sorted({r.seed for r in runs})) if seed == run.seed}
+    figure = plot_curves(curves, output / "learning_curves.png", "steps", title="run", groups=groups)
     return ["## Learning curves of each run", "",
             "Read from each fit's TensorBoard events: optimizer steps and training seconds (wall seconds "
             "since the first event where a fit logged no `time/train_seconds`, validation included), the "

@@ -54,3 +54,81 @@ def cli_data(tmp_path_factory):
     finally:
         torch.set_num_threads(threads)
     return out
+
+
+# ---- the learned simulators on plate_tiny (test_simulators, test_data_module, test_cli) -------------
+T = 8  # states per plate_tiny trajectory
+SMALL = dict(latent=16, blocks=2)  # model size of these tests
+
+
+@pytest.fixture(scope="module")
+def single_thread():
+    """One torch thread for a module: on a 2-core machine torch's intra-op threads make tiny graphs
+    10-100x slower as soon as anything else runs."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def trajs(tiny_data_dir):
+    """The plate_tiny splits as Trajectory lists."""
+    from ggns.data.generate import split_path
+    from ggns.data.schema import read_trajectories
+
+    return {split: read_trajectories(split_path(tiny_data_dir, split)) for split in ("train", "val", "test")}
+
+
+@pytest.fixture(scope="module")
+def val_batch(trajs):
+    from ggns.batch import TrajectoryBatch
+
+    return TrajectoryBatch.from_trajectories(trajs["val"])
+
+
+@pytest.fixture(scope="module")
+def train_windows(trajs):
+    """Two training windows of one transition each (trajectory 0 from step 3, trajectory 1 from step 5)."""
+    from ggns.data.module import WindowDataset
+
+    ds = WindowDataset(trajs["train"], 1)
+    return [ds[3], ds[(T - 1) + 5]]
+
+
+@pytest.fixture(scope="module")
+def train_batch(train_windows):
+    from ggns.data.module import collate
+
+    return collate(train_windows)
+
+
+def make(cls, seed: int = 0, **kwargs):
+    """A simulator of class `cls` at the tests' small size, seeded."""
+    import torch
+
+    torch.manual_seed(seed)
+    return cls(**{**SMALL, **kwargs})
+
+
+def first_graph(model, batch, use_points=None, t: int = 0):
+    """The model's input graph of step t of `batch` (points as the model uses them by default)."""
+    from ggns.graphs.state import state_graph
+
+    use_points = model.uses_points if use_points is None else use_points
+    return state_graph(batch, t, batch.positions[t], use_points, model.connectivity, model.with_material)
+
+
+def normalizer_buffers(state: dict) -> dict:
+    return {k: v for k, v in state.items() if "normalizer" in k}
+
+
+def quiet_trainer(root, **kwargs):
+    """A Lightning trainer without logger, checkpoints or progress output (one batch, no validation)."""
+    import pytorch_lightning as pl
+
+    return pl.Trainer(**{**dict(max_epochs=1, limit_train_batches=1, limit_val_batches=0, logger=False,
+                                enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+                                default_root_dir=root, accelerator="cpu"), **kwargs})

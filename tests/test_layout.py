@@ -114,3 +114,17 @@ def test_no_private_name_is_imported_across_modules():
                 private += [f"{path.relative_to(SRC)}: {node.module}.{a.name}" for a in node.names
                             if a.name.startswith("_") and a.name != "__version__"]
     assert private == []
+
+
+# the layers in import order (README "Layout"): each imports only layers listed before it
+LAYERS = ("ggns", "ggns.trajectory", "ggns.batch", "ggns.geometry", "ggns.config", "ggns.markdown", "ggns.sim",
+          "ggns.scenes", "ggns.sensors", "ggns.data", "ggns.graphs", "ggns.viz", "ggns.evaluation", "ggns.models",
+          "ggns.baselines", "ggns.cli", "ggns.experiments", "ggns.bench", "ggns.demo", "ggns.__main__")
+
+
+def test_every_layer_imports_only_layers_before_it():
+    graph = import_graph()
+    assert {package_of(m) for m in graph} == set(LAYERS)  # a new package or module gets a place in the list
+    upward = sorted(f"{m} -> {o}" for m, imported in graph.items() for o in imported
+                    if LAYERS.index(package_of(o)) > LAYERS.index(package_of(m)))
+    assert upward == []

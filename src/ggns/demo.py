@@ -13,12 +13,13 @@ import math
 import time
 from pathlib import Path
 
+from .batch import TrajectoryBatch
 from .cli import build_cli
 from .config import CONF_DIR
 from .data.module import SimulationDataModule
 from .evaluation.pictures import rollout_picture
 from .evaluation.schedules import EveryK
-from .batch import TrajectoryBatch
+from .markdown import table
 from .viz import plot_trajectories, save_figure
 
 MODELS = ("ggns", "mgn")
@@ -72,13 +73,11 @@ def write_report(runs: list[dict], path: Path, figures: list[Path], preset: str,
         "(GGNS: a point cloud every step; MGN: none; the table below names it). Values: mean ± std over test trajectories; "
         "MSEs in squared task-space units; `k<K>`: a point cloud every K steps, `never`: none after the initial "
         "state. MGN never sees point clouds, so only its `never` rollout exists.", "",
-        "| metric | " + " | ".join(names) + " |", "|---|" + "---|" * len(names),
+        table(["metric", *names], [[m, *(_fmt(r["results"].get(m)) for r in runs)] for m in metrics]),
     ]
-    for m in metrics:
-        lines.append(f"| {m} | " + " | ".join(_fmt(r["results"].get(m)) for r in runs) + " |")
-    lines += ["", "| model | epochs | optimizer steps | fit time (s) | checkpoint | logs |", "|---|---|---|---|---|---|"]
-    for r in runs:
-        lines.append(f"| {r['name']} | {r['epochs']} | {r['steps']} | {r['fit_seconds']:.0f} | `{r['checkpoint']}` | `{r['log_dir']}` |")
+    lines += ["", table(["model", "epochs", "optimizer steps", "fit time (s)", "checkpoint", "logs"],
+                        [[r["name"], r["epochs"], r["steps"], f"{r['fit_seconds']:.0f}", f"`{r['checkpoint']}`",
+                          f"`{r['log_dir']}`"] for r in runs])]
     lines += ["", *(f"![rollouts]({f.name})" for f in figures), "",
               "TensorBoard: `.venv/bin/tensorboard --logdir " + str(path.parent) + "`", ""]
     path.write_text("\n".join(lines))

@@ -22,6 +22,7 @@ from torch import Tensor
 
 from ..graphs.connectivity import Connectivity
 from ..batch import TrajectoryBatch
+from ..markdown import table
 from .metrics import batch_iou, m_plus_10_mse, m_plus_10_starts, one_step_mse, rollout_mse
 from .rollout import StepFn, m_plus_10_rollouts, one_step_predictions, rollout
 from .schedules import Never, Schedule
@@ -105,11 +106,10 @@ class MetricTable:
         return {name: s["mean"] for name, s in self.summary().items()}
 
 
-def markdown_table(results: dict[str, dict[str, float]], title: str | None = None) -> str:
+def metrics_markdown(results: dict[str, dict[str, float]], title: str | None = None) -> str:
     """Metric summaries {name: {"mean", "std", "count"}} as a markdown table (mean +- std over trajectories)."""
     lines = [f"### {title}", ""] if title else []
-    lines += ["| metric | mean | std over trajectories | trajectories |", "|---|---|---|---|"]
-    for name, s in results.items():
-        std = "" if math.isnan(s["std"]) else f"{s['std']:.3e}"
-        lines.append(f"| {name} | {s['mean']:.4e} | {std} | {s['count']} |")
+    rows = [(name, f"{s['mean']:.4e}", "" if math.isnan(s["std"]) else f"{s['std']:.3e}", s["count"])
+            for name, s in results.items()]
+    lines.append(table(["metric", "mean", "std over trajectories", "trajectories"], rows))
     return "\n".join(lines) + "\n"

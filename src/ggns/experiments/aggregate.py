@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 from ..evaluation.selection import CHECKPOINT_KEY, CHECKPOINTS_KEY
+from ..markdown import table as markdown_table
 
 Table = dict[str, dict[str, dict[str, float]]]
 
@@ -136,7 +137,7 @@ def to_markdown(table: Table, metrics: Sequence[str] | None = None, fmt: str = "
     """Rows: models; columns: metrics (default: all, in first-seen order); cells "mean ± std"
     (the mean alone where the std is NaN: one seed), "-" where a model lacks the metric (e.g. MGN has only the `_never` rollouts)."""
     metrics = list(metrics) if metrics is not None else _metric_order(table)
-    lines = ["| model | " + " | ".join(metrics) + " |", "|---|" + "---|" * len(metrics)]
+    rows = []
     for model, per_metric in table.items():
         cells = []
         for metric in metrics:
@@ -147,8 +148,8 @@ def to_markdown(table: Table, metrics: Sequence[str] | None = None, fmt: str = "
                 cells.append(format(s["mean"], fmt))
             else:
                 cells.append(f"{format(s['mean'], fmt)} ± {format(s['std'], fmt)}")
-        lines.append(f"| {model} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+        rows.append([model, *cells])
+    return markdown_table(["model", *metrics], rows) + "\n"
 
 
 def to_csv(table: Table, path: str | Path) -> None:

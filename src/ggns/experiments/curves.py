@@ -11,6 +11,8 @@ from typing import Sequence
 
 import numpy as np
 
+from ..markdown import table
+
 # the curves drawn, in panel order; a variant lacking one (e.g. MGN: no point clouds) leaves it out
 CURVES = ("val/one_step_ratio", "val/rollout_mse_k1", "val/rollout_mse_never", "val/m10_mse", "train/loss_points",
           "train/loss_no_points", "train/lr")
@@ -126,7 +128,7 @@ def markdown_rows(rows: list[dict], threshold: float = RATIO_THRESHOLD, label: s
             "one-step ratio best / last", "rollout MSE k=1 last / best", "rollout MSE never last / best",
             "m+10 MSE last / best", "slope k=1", "slope never", f"train loss with / without points (last {LATE_STEPS} steps)",
             "validations (last at step)"]
-    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    lines = []
     for r in rows:
         if r["steps_to_ratio"] is not None:
             reached = f"{r['steps_to_ratio']} ({_cell(r['seconds_to_ratio'], 'seconds')} s)"
@@ -143,8 +145,8 @@ def markdown_rows(rows: list[dict], threshold: float = RATIO_THRESHOLD, label: s
                  _cell(r["slope_k1"], "+.2f"), _cell(r["slope_never"], "+.2f"),
                  f"{_cell(r['loss_points_late'])} / {_cell(r['loss_no_points_late'])}",
                  f"{_cell(r['validations'])} ({_cell(r['last_val_step'])})"]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+        lines.append(cells)
+    return table(head, lines) + "\n"
 
 
 def plot_curves(curves: dict[str, dict], path: Path, against: str, title: str = "variant",

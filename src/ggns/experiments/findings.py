@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from ..markdown import table
 from .aggregate import NoBenefitError, Table, normalized_benefit
 
 
@@ -135,6 +136,4 @@ def check_targets(table: Table, ks=(1, 2, 5, 10)) -> list[Finding]:
 
 
 def findings_markdown(findings: list[Finding], head: str = "paper finding") -> str:
-    lines = [f"| {head} | on this sweep | numbers (seed means) |", "|---|---|---|"]
-    lines += [f"| {f.claim} | {f.verdict} | {f.evidence} |" for f in findings]
-    return "\n".join(lines) + "\n"
+    return table([head, "on this sweep", "numbers (seed means)"], [(f.claim, f.verdict, f.evidence) for f in findings]) + "\n"

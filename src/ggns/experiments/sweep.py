@@ -57,9 +57,10 @@ from omegaconf import OmegaConf
 from ..baselines.scores import (ALPHA_SHAPES, GENERATED_MESH_FILE, STATIC, alpha_shapes_metrics,
                                generated_mesh_metrics, static_metrics)
 from ..baselines.scores import ROWS as BASELINE_ROWS
+from .. import markdown
 from ..config import resolve_preset
 from ..data.module import SPLITS, SimulationDataModule
-from ..evaluation.evaluate import markdown_table
+from ..evaluation.evaluate import metrics_markdown
 from ..evaluation.schedules import parse_schedule
 from ..evaluation.selection import (CHECKPOINT_KEY, CHECKPOINTS_KEY, FAMILY_CHECKPOINT, M10, ONE_STEP, candidates,
                                     checkpoint_glob, checkpoint_info, describe, metric_family)
@@ -229,9 +230,8 @@ def runs_of(sweep: dict) -> list[Run]:
 
 def checkpoints_markdown(checkpoints: dict[str, dict]) -> str:
     """The "checkpoints" entry of a merged test (`Run.merge_tests`) as a markdown table."""
-    lines = ["| family | tested checkpoint | note |", "|---|---|---|"]
-    lines += [f"| {family} | {describe(info)} | {info.get('note') or ''} |" for family, info in checkpoints.items()]
-    return "\n".join(lines) + "\n"
+    return markdown.table(["family", "tested checkpoint", "note"],
+                          [(family, describe(info), info.get("note") or "") for family, info in checkpoints.items()]) + "\n"
 
 
 def execute(run: Run, threads: int | None = None, log=print) -> Run:
@@ -264,7 +264,7 @@ def execute(run: Run, threads: int | None = None, log=print) -> Run:
     merged = run.merge_tests()
     metrics = {name: value for name, value in merged.items() if name != CHECKPOINTS_KEY}
     run.metrics_path.with_suffix(".md").write_text(
-        markdown_table(metrics, f"{run.model} seed {run.seed} test metrics") + "\n"
+        metrics_markdown(metrics, f"{run.model} seed {run.seed} test metrics") + "\n"
         + checkpoints_markdown(merged[CHECKPOINTS_KEY]))
     write_json(run.metrics_path, merged)
     return run
@@ -374,8 +374,7 @@ def _training_markdown(runs: list[Run], results: list[RunResult]) -> str:
     """Per run and metric family: the tested checkpoint (its step / epoch, what it was selected on,
     any fallback) and the largest step the fit logged. Runs tested before per-family selection
     recorded no checkpoints; theirs are found as they were chosen then (`Run.checkpoints`)."""
-    lines = ["| model | seed | family | tested checkpoint | its step / epoch | selected on | note | "
-             "largest logged step of the fit |", "|---|---|---|---|---|---|---|---|"]
+    rows = []
     for run, result in zip(runs, results):
         logged = _steps_logged(run.fit_dir)
         logged = "-" if logged is None else str(logged)
@@ -386,15 +385,16 @@ def _training_markdown(runs: list[Run], results: list[RunResult]) -> str:
                                         "selection (one checkpoint for every family)"}
                                for family, sel in run.checkpoints().items()}
             except FileNotFoundError:  # checkpoints removed after testing
-                lines.append(f"| {run.model} | {run.seed} | - | (removed) | - | - | - | {logged} |")
+                rows.append((run.model, run.seed, "-", "(removed)", "-", "-", "-", logged))
                 continue
         for family, info in checkpoints.items():
             selected = info.get("selected_on") or "-"
             if info.get("score") is not None:
                 selected += f" = {info['score']:.4g}"
-            lines.append(f"| {run.model} | {run.seed} | {family} | {info['name']} | {info['global_step']} / "
-                         f"{info['epoch']} | {selected} | {info.get('note') or ''} | {logged} |")
-    return "\n".join(lines) + "\n"
+            rows.append((run.model, run.seed, family, info["name"], f"{info['global_step']} / {info['epoch']}", selected,
+                         info.get("note") or "", logged))
+    return markdown.table(["model", "seed", "family", "tested checkpoint", "its step / epoch", "selected on", "note",
+                           "largest logged step of the fit"], rows) + "\n"
 
 
 def _learning_markdown(runs: list[Run], output: Path) -> list[str]:
@@ -436,8 +436,7 @@ def summarize(sweep: dict, log=print) -> Path:
         try:
             benefit = normalized_benefit(table)
             lines += ["## Normalized benefit of point clouds (1 at k = 1, 0 at MGN)", "",
-                      "| k | " + " | ".join(map(str, benefit)) + " |", "|---|" + "---|" * len(benefit),
-                      "| benefit | " + " | ".join(f"{v:.3f}" for v in benefit.values()) + " |"]
+                      markdown.table(["k", *benefit], [["benefit", *(f"{v:.3f}" for v in benefit.values())]])]
         except ValueError as error:
             lines += ["", f"Normalized benefit not computed: {error}"]
     lines += ["", "## The paper's findings on this sweep", "", findings_markdown(check_findings(table))]

@@ -25,9 +25,10 @@ import numpy as np
 import torch
 import torch_cluster
 
-from ..config import load_config
-from ..trajectory import Trajectory
 from ..batch import TrajectoryBatch
+from ..config import load_config
+from ..markdown import table
+from ..trajectory import Trajectory
 from .connectivity import Connectivity, load_connectivity
 from .state import state_graph
 from .types import MESH_EDGE, WORLD_EDGE
@@ -99,13 +100,13 @@ def check(values: dict[str, float], targets: dict[str, list[float]]) -> dict[str
 def report(values: dict[str, float], targets: dict[str, list[float]], title: str) -> str:
     """A markdown table of every measured value, with its target range and verdict where one exists."""
     verdict = check(values, targets)
-    lines = [f"### {title}", "", "| quantity | value | target | |", "|---|---|---|---|"]
+    rows = []
     for name, value in values.items():
         target = targets.get(name)
         rng = f"{target[0]:g} to {float(target[1]):g}" if target else ""
         mark = ("ok" if verdict[name] else "OUT OF RANGE") if target else ""
-        lines.append(f"| {name} | {value:.4g} | {rng} | {mark} |")
-    return "\n".join(lines) + "\n"
+        rows.append((name, f"{value:.4g}", rng, mark))
+    return "\n".join([f"### {title}", "", table(["quantity", "value", "target", ""], rows)]) + "\n"
 
 
 def geometry_report(trajectories: list[Trajectory], source: str, targets: str | Path = "plate",

@@ -29,7 +29,7 @@ import torch
 from torch import Tensor, nn
 from torch_geometric.data import HeteroData
 
-from ..evaluation.evaluate import MetricTable, evaluate_batch, markdown_table
+from ..evaluation.evaluate import MetricTable, evaluate_batch, metrics_markdown
 from ..evaluation.rollout import rollout
 from ..evaluation.schedules import EveryK, Schedule, effective_schedule, parse_schedule
 from ..batch import TrajectoryBatch
@@ -272,7 +272,7 @@ class GraphSimulator(pl.LightningModule):
         summary = self._test_table.summary()
         for name, s in summary.items():
             self.log(f"test/{name}", s["mean"])
-        table = markdown_table(summary, f"{type(self).__name__} test metrics")
+        table = metrics_markdown(summary, f"{type(self).__name__} test metrics")
         print("\n" + table)
         log_dir = self.trainer.log_dir
         if log_dir is not None and self.trainer.is_global_zero:

@@ -1,0 +1,238 @@
+"""`python -m ggns fit / test / predict` end to end (ggns.cli) on plate_tiny with T = 12 (the
+`cli_data` fixture): real Lightning, real TensorBoard logs, checkpoints per metric family, resuming,
+the refusals of mismatched checkpoints and arguments. Runs single-threaded (conftest `single_thread`)."""
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from ggns.__main__ import main
+from ggns.batch import TrajectoryBatch
+from ggns.config import CONF_DIR
+from ggns.data.generate import split_path
+from ggns.data.schema import read_trajectories
+from ggns.evaluation.callbacks import RolloutEvaluation
+from ggns.evaluation.evaluate import zero_motion_one_step_mse
+from ggns.evaluation.schedules import EveryK, Never
+from ggns.evaluation.selection import val_metric
+from ggns.models.simulators import GGNS, MGN
+from conftest import TINY12, make, normalizer_buffers
+
+pytestmark = pytest.mark.usefixtures("single_thread")
+
+
+# ---- 4. the command line end to end (data: the `cli_data` fixture, T = 12) ---------------------------------------
+def run_cli(args: list[str]) -> None:
+    """`python -m ggns <args>` in this process (sys.argv emptied: LightningCLI warns when it also has one)."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(sys, "argv", ["ggns"])
+        main(args)
+
+
+def cli_args(config: str, data_dir, logs, version: str, *extra) -> list[str]:
+    return ["--config", str(CONF_DIR / "plate" / f"{config}.yaml"), "--data.dataset", str(data_dir / TINY12),
+            "--data.data_dir", str(data_dir), "--data.batch_size", "8", "--data.generate_missing", "false",
+            "--trainer.logger.init_args.save_dir", str(logs), "--trainer.logger.init_args.version", version,
+            "--model.init_args.latent", "16", "--model.init_args.blocks", "2",
+            "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false",
+            "--trainer.limit_train_batches", "2", "--trainer.log_every_n_steps", "1", *extra]
+
+
+def events(log_dir: Path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    (event_file,) = log_dir.glob("events.out.tfevents.*")
+    acc = EventAccumulator(str(event_file), size_guidance={"images": 0, "scalars": 0})
+    acc.Reload()
+    return acc
+
+
+def family_states(ckpt: dict) -> dict:
+    """{monitored scalar: state} of the ModelCheckpoints that keep a best checkpoint per metric family."""
+    return {v["monitor"]: v for k, v in ckpt["callbacks"].items() if k.startswith("ModelCheckpoint") and v["monitor"]}
+
+
+@pytest.fixture(scope="module")
+def ggns_fit(cli_data, tmp_path_factory):
+    logs = tmp_path_factory.mktemp("logs")
+    run_cli(["fit", *cli_args("ggns", cli_data, logs, "fit", "--trainer.max_epochs", "2",
+                           "--trainer.check_val_every_n_epoch", "1", "--trainer.limit_val_batches", "1")])
+    return logs
+
+
+def test_cli_fit_logs_and_checkpoints(ggns_fit, cli_data):
+    run = ggns_fit / "ggns" / "fit"
+    last = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
+    assert (run / "config.yaml").is_file()
+    assert last["epoch"] == 1 and last["global_step"] == 4  # 2 epochs x limit_train_batches 2
+    assert last["hyper_parameters"]["latent"] == 16 and last["hyper_parameters"]["blocks"] == 2
+
+    acc = events(run)
+    scalars = acc.Tags()["scalars"]
+    for tag in ("train/loss", "train/loss_points", "train/loss_no_points", "val/loss", "val/rollout_mse",
+                "val/rollout_mse_k1", "val/rollout_mse_never", "val/m10_mse", "val/one_step_mse",
+                "val/one_step_mse_zero_motion", "val/one_step_ratio", "val/evaluation_seconds"):
+        assert tag in scalars, tag
+    values = {tag: [e.value for e in acc.Scalars(tag)] for tag in scalars if tag.startswith("val/")}
+    for tag, v in values.items():  # one per epoch, no sanity check
+        assert len(v) == 2 and all(math.isfinite(x) and x > 0 for x in v), tag
+    assert values["val/rollout_mse"] == values["val/rollout_mse_k1"]  # the alias of GGNS's primary family
+
+    # one best checkpoint per family, selected on the family's own scalar
+    states = family_states(last)
+    assert sorted(states) == ["val/m10_mse", "val/rollout_mse_k1", "val/rollout_mse_never"]
+    for family in ("k1", "never", "m10"):
+        (path,) = (run / "checkpoints").glob(f"best-{family}-step=*.ckpt")
+        state = states[val_metric(family)]
+        assert Path(state["best_model_path"]) == path
+        assert math.isclose(float(state["best_model_score"]), min(values[val_metric(family)]), rel_tol=1e-6)
+        assert torch.load(path, weights_only=False)["global_step"] == int(path.stem.split("=")[1])
+
+    # the second validation's scalars are last.ckpt's metrics on the 2 validation trajectories
+    model = GGNS.load_from_checkpoint(run / "checkpoints" / "last.ckpt")
+    val = TrajectoryBatch.from_trajectories(read_trajectories(split_path(cli_data, "val")))
+    direct = model.evaluate(val, [EveryK(1), Never()], iou=False, m_plus_10_stride=10)
+    for name in ("one_step_mse", "rollout_mse_k1", "rollout_mse_never", "m10_mse"):
+        assert math.isclose(values[f"val/{name}"][1], direct[name].mean().item(), rel_tol=1e-5), name
+    zero = values["val/one_step_mse_zero_motion"]
+    assert zero[0] == zero[1] and math.isclose(zero[0], zero_motion_one_step_mse(val).mean().item(), rel_tol=1e-6)
+    for one, ratio in zip(values["val/one_step_mse"], values["val/one_step_ratio"]):
+        assert math.isclose(ratio, one / zero[0], rel_tol=1e-5)
+    assert "rollout/val_0" in acc.Tags()["images"]
+    image = acc.Images("rollout/val_0")
+    assert len(image) == 2 and image[0].width > 100 and image[0].height > 100
+
+
+def test_cli_test_writes_paper_metrics_of_the_best_checkpoint(ggns_fit, cli_data, capsys):
+    (best,) = (ggns_fit / "ggns" / "fit" / "checkpoints").glob("best-k1-step=*.ckpt")
+    run_cli(["test", *cli_args("ggns", cli_data, ggns_fit, "test", "--ckpt_path", str(best))])
+    run = ggns_fit / "ggns" / "test"
+    summary = json.loads((run / "test_metrics.json").read_text())
+    # the tested checkpoint is named: path, step, epoch and the scalar it was selected on
+    saved = torch.load(best, weights_only=False)
+    info = summary.pop("checkpoint")
+    assert info["path"] == str(best) and (info["global_step"], info["epoch"]) == (saved["global_step"], saved["epoch"])
+    assert info["selected_on"] == "val/rollout_mse_k1"
+    assert info["score"] == float(family_states(saved)["val/rollout_mse_k1"]["best_model_score"])
+    line = (f"tested checkpoint: {best.name} (global step {saved['global_step']}, epoch {saved['epoch']}; "
+            f"best val/rollout_mse_k1 = ")
+    assert line in capsys.readouterr().out and line in (run / "test_metrics.md").read_text()
+
+    keys = ["one_step_mse", "m10_mse"] + [f"rollout_{m}_{s}" for m in ("mse", "iou")
+                                          for s in ("k1", "k2", "k5", "k10", "never")]
+    assert sorted(summary) == sorted(keys)
+    for name, s in summary.items():
+        assert s["count"] == 2 and math.isfinite(s["mean"]) and math.isfinite(s["std"]), name
+        if name.startswith("rollout_iou"):
+            assert 0 < s["mean"] <= 1
+    table = (run / "test_metrics.md").read_text()
+    assert all(f"| {k} |" in table for k in keys)
+    # the numbers are the best checkpoint's, on the whole 12-state test split
+    model = GGNS.load_from_checkpoint(best)
+    batch = TrajectoryBatch.from_trajectories(read_trajectories(split_path(cli_data, "test")))
+    assert batch.num_steps == 12
+    direct = model.evaluate(batch)
+    for name, s in summary.items():
+        assert math.isclose(direct[name].mean().item(), s["mean"], rel_tol=1e-5, abs_tol=1e-12), name
+
+
+def test_rollout_evaluation_refuses_what_it_cannot_log(tiny_data_dir, tmp_path):
+    """val/m10_mse on trajectories of T <= 10 states, or a primary family the model does not evaluate:
+    an error at the start of fit naming the setting, not a ModelCheckpoint failing after training."""
+    with pytest.raises(ValueError, match=r"val/m10_mse needs val trajectories of more than 10 states, these have 8; "
+                                         r"set m_plus_10: false"):
+        run_cli(["fit", *cli_args("mgn", tiny_data_dir, tmp_path, "fit", "--data.dataset", "plate_tiny")])
+    assert not list(tmp_path.rglob("*.ckpt"))
+    with pytest.raises(ValueError, match=r"primary 'k1' is not evaluated for MGN; choose one of \['never', 'm10'\]"):
+        RolloutEvaluation(primary="k1").primary_family(make(MGN))
+    assert RolloutEvaluation(primary="m10").primary_family(make(GGNS)) == "m10"
+    assert [str(s) for s in RolloutEvaluation(schedules=["every:5", "every:1"]).schedules(make(GGNS))] == [
+        "every:1", "never", "every:5"]
+    assert [str(s) for s in RolloutEvaluation(schedules=["every:5"]).schedules(make(MGN))] == ["never"]
+
+
+def test_cli_resume_continues_without_new_statistics(ggns_fit, cli_data):
+    last_path = ggns_fit / "ggns" / "fit" / "checkpoints" / "last.ckpt"
+    before = torch.load(last_path, weights_only=False)
+    run_cli(["fit", *cli_args("ggns", cli_data, ggns_fit, "resume", "--trainer.max_epochs", "3",
+                           "--trainer.check_val_every_n_epoch", "1", "--trainer.limit_val_batches", "1",
+                           "--ckpt_path", str(last_path))])
+    after = torch.load(ggns_fit / "ggns" / "resume" / "checkpoints" / "last.ckpt", weights_only=False)
+    assert (before["epoch"], after["epoch"]) == (1, 2)
+    assert after["global_step"] == before["global_step"] + 2  # one more epoch of 2 batches
+    old, new = normalizer_buffers(before["state_dict"]), normalizer_buffers(after["state_dict"])
+    assert old.keys() == new.keys() and old
+    for name in old:
+        assert torch.equal(new[name], old[name]), name
+    changed = [k for k in before["state_dict"] if k not in old and not torch.equal(before["state_dict"][k],
+                                                                                     after["state_dict"][k])]
+    assert changed  # the weights did train
+    assert len(events(ggns_fit / "ggns" / "resume").Scalars("val/rollout_mse")) == 1  # epoch 2 only
+
+
+def test_last_checkpoint_is_the_newest_state_between_validations(cli_data, tmp_path):
+    """Validation every 2nd epoch of 3: the best checkpoints are epoch 1's, while last.ckpt must hold
+    the end of epoch 2, which no validation followed (a resume continues from there). Lightning's
+    own save_last only copies a newly saved best checkpoint and would stop at epoch 1."""
+    run_cli(["fit", *cli_args("mgn", cli_data, tmp_path, "fit", "--trainer.max_epochs", "3",
+                           "--trainer.check_val_every_n_epoch", "2", "--trainer.limit_val_batches", "1")])
+    checkpoints = tmp_path / "mgn" / "fit" / "checkpoints"
+    assert sorted(p.name for p in checkpoints.glob("best-*.ckpt")) == ["best-m10-step=4.ckpt", "best-never-step=4.ckpt"]
+    last = torch.load(checkpoints / "last.ckpt", weights_only=False)
+    assert (last["epoch"], last["global_step"]) == (2, 6)  # 3 epochs x 2 batches
+
+
+def test_cli_mgn_fit_and_test(cli_data, tmp_path, capsys):
+    run_cli(["fit", *cli_args("mgn", cli_data, tmp_path, "fit", "--trainer.max_epochs", "1",
+                           "--trainer.check_val_every_n_epoch", "1", "--trainer.limit_val_batches", "1")])
+    run = tmp_path / "mgn" / "fit"
+    (best,) = (run / "checkpoints").glob("best-never-step=2.ckpt")
+    assert (run / "checkpoints" / "last.ckpt").is_file()
+    acc = events(run)
+    scalars = acc.Tags()["scalars"]
+    assert "rollout/val_0" in acc.Tags()["images"]
+    assert "train/loss_no_points" in scalars and "train/loss_points" not in scalars  # MGN never sees points
+    assert "val/rollout_mse_k1" not in scalars and "val/m10_mse" in scalars
+    assert [e.value for e in acc.Scalars("val/rollout_mse")] == [e.value for e in acc.Scalars("val/rollout_mse_never")]
+    run_cli(["test", *cli_args("mgn", cli_data, tmp_path, "test", "--ckpt_path", str(best))])
+    summary = json.loads((tmp_path / "mgn" / "test" / "test_metrics.json").read_text())
+    assert summary.pop("checkpoint")["selected_on"] == "val/rollout_mse_never"
+    assert sorted(summary) == ["m10_mse", "one_step_mse", "rollout_iou_never", "rollout_mse_never"]
+    assert all(math.isfinite(s["mean"]) and s["count"] == 2 for s in summary.values())
+    # predict: the RolloutWriter of the config saves the rollouts of the test trajectories
+    run_cli(["predict", *cli_args("mgn", cli_data, tmp_path, "predict", "--ckpt_path", str(best))])
+    predictions = torch.load(tmp_path / "mgn" / "predict" / "predictions.pt")
+    (first,) = predictions  # the 2 test trajectories form one batch
+    assert first["schedule"] == "never" and len(first["node_offsets"]) == 3
+    positions = first["positions"]
+    assert positions.shape[1:] == (first["node_offsets"][-1], 2) and torch.isfinite(positions).all()
+    # never silently another model: a checkpoint of another class than the config's is refused, and so
+    # is a model argument on the command line that the checkpoint would replace; nothing is logged
+    for config, extra, message in (("ggns", [], "holds a ggns.models.simulators.MGN, but the config asks for "
+                                                 "ggns.models.simulators.GGNS"),
+                                   ("mgn", ["--model.init_args.latent", "32"], "latent: given 32, checkpoint 16"),
+                                   ("mgn", ["--model.init_args.noise_std=0.5"], "noise_std: given 0.5, checkpoint 0.01")):
+        with pytest.raises(SystemExit) as exit_info:
+            run_cli(["test", *cli_args(config, cli_data, tmp_path, "refused", "--ckpt_path", str(best), *extra)])
+        assert exit_info.value.code == 2 and message in capsys.readouterr().err
+        assert not list(tmp_path.glob("*/refused"))
+    # evaluation settings may change at test time, and are applied
+    run_cli(["test", *cli_args("mgn", cli_data, tmp_path, "no_m10", "--ckpt_path", str(best),
+                               "--model.init_args.test_m_plus_10", "false")])
+    assert "m10_mse" not in json.loads((tmp_path / "mgn" / "no_m10" / "test_metrics.json").read_text())
+
+
+def test_a_run_without_logger_writes_no_config_into_its_root(cli_data, tmp_path):
+    """Lightning's SaveConfigCallback would drop config.yaml into default_root_dir (the working
+    directory by default) when a run has no logger of its own."""
+    run_cli(["fit", *cli_args("mgn", cli_data, tmp_path, "fit", "--trainer.logger", "false", "--trainer.max_epochs", "1",
+                           "--trainer.limit_val_batches", "0", "--trainer.default_root_dir", str(tmp_path))])
+    assert (tmp_path / "checkpoints" / "last.ckpt").is_file()  # the fit ran, in that root
+    assert not (tmp_path / "config.yaml").exists()
+
+

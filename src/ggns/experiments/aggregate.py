@@ -2,7 +2,7 @@
 
 Each run (one model config, one seed; a Lightning fit + test) writes `test_metrics.json`
 into its log dir: {metric name: {"mean", "std", "count"}} over test trajectories (see
-`ggns.evaluation.evaluate` and `Simulator.on_test_epoch_end`), plus the tested checkpoint(s)
+`ggns.evaluation.evaluate` and `GraphSimulator.on_test_epoch_end` in ggns.models.simulators), plus the tested checkpoint(s)
 (`ggns.evaluation.selection`: "checkpoint" for one `test`, "checkpoints" per metric family for a
 sweep run's merged tests). A run's value of a metric is
 that "mean". The paper reports, per model and metric, the mean and standard deviation of

@@ -5,10 +5,13 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
 import sys
 from pathlib import Path
 
 import pytest
+import pytorch_lightning as pl
 import torch
 
 from ggns.__main__ import main
@@ -236,3 +239,24 @@ def test_a_run_without_logger_writes_no_config_into_its_root(cli_data, tmp_path)
     assert not (tmp_path / "config.yaml").exists()
 
 
+
+
+class SigtermOnFirstBatch(pl.Callback):
+    """Sends this process a SIGTERM after the first training batch, as a cluster's scheduler would."""
+
+    def on_train_batch_end(self, trainer, *args) -> None:
+        if trainer.global_step == 1:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+
+def test_a_fit_stopped_by_sigterm_exits_nonzero(cli_data, tmp_path, capsys):
+    """Lightning ends a SIGTERM'd fit with a bare SystemExit (status 0); the sweep and the learning
+    command read the status to decide whether a fit finished, so the CLI must turn it into 143. The
+    state at the stop is in last.ckpt (no epoch ended, so only the SIGTERM hook can have written it)."""
+    with pytest.raises(SystemExit) as exit_info:
+        run_cli(["fit", *cli_args("mgn", cli_data, tmp_path, "fit", "--trainer.max_epochs", "3",
+                                  "--trainer.limit_val_batches", "0",
+                                  f"--trainer.callbacks+={__name__}.SigtermOnFirstBatch")])
+    assert exit_info.value.code == 143 and "stopped by SIGTERM" in capsys.readouterr().err
+    last = torch.load(tmp_path / "mgn" / "fit" / "checkpoints" / "last.ckpt", weights_only=False)
+    assert (last["epoch"], last["global_step"]) == (0, 1)  # stopped after batch 1 of 3 epochs x 2 batches

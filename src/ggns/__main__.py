@@ -116,6 +116,8 @@ def _sweep(args: argparse.Namespace) -> None:
 def main(argv: list[str] | None = None) -> None:
     given = sys.argv[1:] if argv is None else list(argv)
     if given and given[0] in ("fit", "validate", "test", "predict"):
+        from pytorch_lightning.utilities.exceptions import SIGTERMException
+
         from .cli import CheckpointMismatchError, build_cli
 
         try:
@@ -123,6 +125,12 @@ def main(argv: list[str] | None = None) -> None:
         except CheckpointMismatchError as error:
             print(f"error: {error}", file=sys.stderr)
             raise SystemExit(2) from None
+        except SIGTERMException:
+            # Lightning stops a SIGTERM'd run with a bare SystemExit, i.e. exit status 0; a sweep or a
+            # learning file would then test a partial fit or mark it finished.
+            print(f"error: {given[0]} stopped by SIGTERM before it finished (rerun it to resume from "
+                  "last.ckpt)", file=sys.stderr)
+            raise SystemExit(143) from None
         return
     parser = argparse.ArgumentParser(prog="ggns", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)

@@ -9,7 +9,9 @@ checkpoint's hyperparameters, except the evaluation settings `EVALUATION_ARGS`).
 silently dropped for the checkpoint's: a checkpoint of another model class than the config's is
 refused, and so is a model argument given on the command line that the checkpoint would replace
 by a different value (`CheckpointMismatchError`). A trainer with a logger also logs the learning
-rate of every optimizer step as `train/lr` (Lightning's LearningRateMonitor).
+rate of every optimizer step as `train/lr` (Lightning's LearningRateMonitor). A fit stopped by SIGTERM
+(a cluster's pre-emption, `kill`) saves its state to last.ckpt before it ends (`LastCheckpointOnSigterm`),
+and `python -m ggns` then exits with status 143, so a resume continues from the step it stopped at.
 """
 from __future__ import annotations
 
@@ -17,8 +19,10 @@ import re
 import sys
 
 from pytorch_lightning import Trainer
-from pytorch_lightning.callbacks import LearningRateMonitor
+from pytorch_lightning.callbacks import Callback, LearningRateMonitor, ModelCheckpoint
 from pytorch_lightning.cli import LightningCLI, SaveConfigCallback
+from pytorch_lightning.trainer.states import TrainerFn
+from pytorch_lightning.utilities.exceptions import SIGTERMException
 
 from .data.module import SimulationDataModule
 from .models.simulators import GraphSimulator
@@ -52,6 +56,18 @@ class RunConfigCallback(SaveConfigCallback):
             super().setup(trainer, pl_module, stage)
 
 
+class LastCheckpointOnSigterm(Callback):
+    """On SIGTERM (Lightning stops at the end of the running batch), saves the fit's state where its
+    `last` ModelCheckpoint keeps it, so that resuming from last.ckpt loses no finished step."""
+
+    def on_exception(self, trainer: Trainer, pl_module, exception: BaseException) -> None:
+        if not isinstance(exception, SIGTERMException) or trainer.state.fn != TrainerFn.FITTING:
+            return
+        for callback in trainer.checkpoint_callbacks:
+            if isinstance(callback, ModelCheckpoint) and callback.filename == "last" and callback.dirpath:
+                trainer.save_checkpoint(callback.format_checkpoint_name({}, callback.filename))
+
+
 class SimulatorCLI(LightningCLI):
     """LightningCLI whose trainers, when they have a logger, log the learning rate per optimizer step
     (under the scheduler's name, `train/lr` for the simulators); without a logger the monitor would raise."""
@@ -60,6 +76,7 @@ class SimulatorCLI(LightningCLI):
         trainer = super().instantiate_trainer(**kwargs)
         if trainer.loggers and not any(isinstance(c, LearningRateMonitor) for c in trainer.callbacks):
             trainer.callbacks.append(LearningRateMonitor(logging_interval="step"))
+        trainer.callbacks.append(LastCheckpointOnSigterm())
         return trainer
 
     def parse_arguments(self, parser, args) -> None:

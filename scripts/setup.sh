@@ -21,10 +21,17 @@ fi
 [ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
 PIP="$VENV/bin/python -m pip"
 TORCH=$(grep -E '^torch==' requirements.txt)
-$PIP install -q "$TORCH" ninja wheel "setuptools>=61"
+$PIP install -q "$TORCH" ninja wheel "setuptools>=66"
 if ! "$VENV/bin/python" -c "import torch_cluster" 2>/dev/null; then
   echo "[setup] building torch-cluster from source (several minutes the first time; pip caches the wheel)"
-  MAX_JOBS=$(nproc) $PIP install -q --no-build-isolation torch-cluster==1.6.3
+  # torch-cluster is nine small extensions of one or two files each, compiled without ninja:
+  # MAX_JOBS has nothing to parallelize inside one. setuptools' build_ext can build whole
+  # extensions in parallel (its `parallel` option), set here through an extra distutils config
+  # file (DIST_EXTRA_CONFIG, read by setuptools >= 66) for this one build.
+  BUILD_CFG=$(mktemp)
+  printf '[build_ext]\nparallel = %s\n' "$(nproc)" > "$BUILD_CFG"
+  DIST_EXTRA_CONFIG="$BUILD_CFG" MAX_JOBS=$(nproc) $PIP install -q --no-build-isolation torch-cluster==1.6.3
+  rm -f "$BUILD_CFG"
 fi
 $PIP install -q -r requirements.txt
 $PIP install -q --no-deps --no-build-isolation -e .

@@ -60,6 +60,7 @@ def test_variant_row_on_hand_made_curves():
             "train/loss_no_points": curve(np.arange(0, 3000, 500), [9.0, 9.0, 9.0, 9.0, 0.6, 0.6])}
     row = variant_row("a", [], {**scalars, **late})
     assert (row["m10_mse_last"], row["m10_mse_best"]) == (2e-3, 1e-3)
+    assert row["slope_m10"] == pytest.approx(10 * np.log10(2))  # 1e-3 -> 2e-3 over steps 200..300
     assert row["loss_points_late"] == pytest.approx(0.3) and row["loss_no_points_late"] == pytest.approx(0.6)
     # without the clock: wall seconds, no steps/s
     wall = {k: curve(s, v, wall=s / 10 + 1000) for k, (s, _, v) in scalars.items() if k != CLOCK}

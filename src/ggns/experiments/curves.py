@@ -21,7 +21,7 @@ RATIO_THRESHOLD = 0.2  # one-step MSE / zero-motion MSE that counts as "learned 
 COLUMNS = ("variant", "change", "steps", "train_seconds", "steps_per_second", "steps_to_ratio",
            "seconds_to_ratio", "best_one_step_ratio", "last_one_step_ratio", "validations", "last_val_step",
            "rollout_mse_k1_last", "rollout_mse_k1_best", "rollout_mse_never_last", "rollout_mse_never_best",
-           "slope_k1", "slope_never", "m10_mse_last", "m10_mse_best", "loss_points_late", "loss_no_points_late")
+           "slope_k1", "slope_never", "m10_mse_last", "m10_mse_best", "slope_m10", "loss_points_late", "loss_no_points_late")
 LATE_STEPS = 1000  # the training loss with / without point clouds is averaged over the last this many steps
 
 
@@ -102,8 +102,8 @@ def variant_row(name: str, args: Sequence[str], scalars: dict, threshold: float 
             row["validations"] = row["validations"] or len(steps)
             row["last_val_step"] = row["last_val_step"] or int(steps[-1])
     if "val/m10_mse" in scalars:
-        mse = scalars["val/m10_mse"][2]
-        row.update(m10_mse_last=float(mse[-1]), m10_mse_best=float(mse.min()))
+        steps, _, mse = scalars["val/m10_mse"]
+        row.update(m10_mse_last=float(mse[-1]), m10_mse_best=float(mse.min()), slope_m10=late_slope(steps, mse))
     for key in ("points", "no_points"):
         if f"train/loss_{key}" in scalars:
             steps, _, loss = scalars[f"train/loss_{key}"]
@@ -126,7 +126,7 @@ def markdown_rows(rows: list[dict], threshold: float = RATIO_THRESHOLD, label: s
     (the variant's arguments) left out when change=False."""
     head = [label] + (["change"] if change else []) + ["steps", "train s", "steps/s", f"one-step ratio <= {threshold}: step (s)",
             "one-step ratio best / last", "rollout MSE k=1 last / best", "rollout MSE never last / best",
-            "m+10 MSE last / best", "slope k=1", "slope never", f"train loss with / without points (last {LATE_STEPS} steps)",
+            "m+10 MSE last / best", "slope k=1", "slope never", "slope m+10", f"train loss with / without points (last {LATE_STEPS} steps)",
             "validations (last at step)"]
     lines = []
     for r in rows:
@@ -142,7 +142,7 @@ def markdown_rows(rows: list[dict], threshold: float = RATIO_THRESHOLD, label: s
                  f"{_cell(r['rollout_mse_k1_last'])} / {_cell(r['rollout_mse_k1_best'])}",
                  f"{_cell(r['rollout_mse_never_last'])} / {_cell(r['rollout_mse_never_best'])}",
                  f"{_cell(r['m10_mse_last'])} / {_cell(r['m10_mse_best'])}",
-                 _cell(r["slope_k1"], "+.2f"), _cell(r["slope_never"], "+.2f"),
+                 _cell(r["slope_k1"], "+.2f"), _cell(r["slope_never"], "+.2f"), _cell(r["slope_m10"], "+.2f"),
                  f"{_cell(r['loss_points_late'])} / {_cell(r['loss_no_points_late'])}",
                  f"{_cell(r['validations'])} ({_cell(r['last_val_step'])})"]
         lines.append(cells)

@@ -197,7 +197,7 @@ def write_report(spec: dict, log=print) -> Path:
               "seconds are wall seconds since the first event, validation included, and which have no steps/s") +
              f". One-step ratio: `val/one_step_ratio`, the one-step MSE over the zero-motion MSE; the step (and "
              f"training seconds) of the first validation at or below {RATIO_THRESHOLD}. Rollout MSE at the last "
-             "validation / the best one. Slope: log10 rollout MSE per 1000 steps, least squares over the "
+             "validation / the best one. Slope: log10 rollout (or m+10) MSE per 1000 steps, least squares over the "
              "validations in the second half of the steps (negative: still falling). m+10: `val/m10_mse`. Train loss: "
              f"the normalized training loss of graphs with / without a point cloud, mean of the values logged in "
              f"the last {LATE_STEPS} optimizer steps. n/a: not logged.", "",

@@ -409,7 +409,7 @@ def _learning_markdown(runs: list[Run], output: Path) -> list[str]:
     return ["## Learning curves of each run", "",
             "Read from each fit's TensorBoard events: optimizer steps and training seconds (wall seconds "
             "since the first event where a fit logged no `time/train_seconds`, validation included), the "
-            "validation metrics at the last validation / the best one, the slope of log10 rollout MSE per "
+            "validation metrics at the last validation / the best one, the slope of log10 rollout (or m+10) MSE per "
             "1000 steps over the second half of the validations (negative: still falling), and the training "
             f"loss of graphs with / without a point cloud over the last {LATE_STEPS} steps.", "",
             markdown_rows(rows, label="run", change=False), f"![{figure.stem}]({figure.name})", ""]

@@ -1,9 +1,7 @@
 """The baselines scored like the learned models' test runs, in the runs' own metric format
 ({metric: {"mean", "std", "count"}} over test trajectories), so a sweep's summary tabulates them
-with the learned models (`ggns.experiments.sweep.run_baselines` computes and stores them).
-The paper's two point-cloud baselines of a sweep, scored on its test trajectories and stored
-beside its runs in the runs' own metric format ({metric: {"mean", "std", "count"}} over test
-trajectories), so `summarize` tabulates them with the learned models.
+with the learned models (`ggns.experiments.sweep.run_baselines` computes them on a sweep's test
+trajectories and stores them beside its runs):
 
     generated_mesh_iou_<s>   mean IoU (steps 1..T-1, as `rollout_iou_<s>`) of a rollout under
                              schedule s that starts from a mesh GENERATED from the first point
@@ -65,7 +63,7 @@ def static_metrics(trajectories) -> dict[str, dict[str, float]]:
             iou.append(batch_iou(held, true, traj.cells)[0, 1:].mean().item())
         one_step.append(zero_motion_one_step_mse(TrajectoryBatch.from_trajectories([traj], dtype=torch.float64))[0])
     return summarize_values({"rollout_mse_never": mse, "one_step_mse": [float(v) for v in one_step],
-                     **({"rollout_iou_never": iou} if iou else {})})
+                             **({"rollout_iou_never": iou} if iou else {})})
 
 
 def generated_mesh_metrics(model, trajectories, schedules=None) -> dict[str, dict[str, float]]:

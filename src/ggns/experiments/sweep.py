@@ -362,21 +362,21 @@ def _sections(table) -> list[str]:
     return lines
 
 
-def _steps_logged(directory: Path) -> int | None:
-    """The largest step of any scalar in the TensorBoard event files of a fit (its training length,
-    to within `log_every_n_steps`; validation is logged at the step it ran), or None."""
-    scalars = read_scalars(directory) if directory.is_dir() else {}
+def _steps_logged(scalars: dict) -> int | None:
+    """The largest TensorBoard step of any scalar of a fit (`curves.read_scalars` of its event files;
+    its training length, to within `log_every_n_steps`; validation is logged at the step it ran), or None."""
     # read_scalars counts optimizer steps completed (TensorBoard step + 1)
     return int(max(steps.max() for steps, _, _ in scalars.values())) - 1 if scalars else None
 
 
-def _training_markdown(runs: list[Run], results: list[RunResult]) -> str:
+def _training_markdown(runs: list[Run], results: list[RunResult], curves: list[dict]) -> str:
     """Per run and metric family: the tested checkpoint (its step / epoch, what it was selected on,
-    any fallback) and the largest step the fit logged. Runs tested before per-family selection
-    recorded no checkpoints; theirs are found as they were chosen then (`Run.checkpoints`)."""
+    any fallback) and the largest step the fit logged (`curves`: each run's `read_scalars`). Runs
+    tested before per-family selection recorded no checkpoints; theirs are found as they were chosen
+    then (`Run.checkpoints`)."""
     rows = []
-    for run, result in zip(runs, results):
-        logged = _steps_logged(run.fit_dir)
+    for run, result, scalars in zip(runs, results, curves):
+        logged = _steps_logged(scalars)
         logged = "-" if logged is None else str(logged)
         checkpoints = result.checkpoints
         if not checkpoints:
@@ -397,11 +397,10 @@ def _training_markdown(runs: list[Run], results: list[RunResult]) -> str:
                            "largest logged step of the fit"], rows) + "\n"
 
 
-def _learning_markdown(runs: list[Run], output: Path) -> list[str]:
-    """The learning-curve table of every run (`curves.variant_row`, read from its fit's event files)
-    and the curves against optimizer steps (learning_curves.png)."""
-    curves = {f"{run.model} seed {run.seed}": read_scalars(run.fit_dir) if run.fit_dir.is_dir() else {}
-              for run in runs}
+def _learning_markdown(runs: list[Run], scalars: list[dict], output: Path) -> list[str]:
+    """The learning-curve table of every run (`curves.variant_row` of its `read_scalars`, in
+    `scalars`) and the curves against optimizer steps (learning_curves.png)."""
+    curves = {f"{run.model} seed {run.seed}": run_scalars for run, run_scalars in zip(runs, scalars)}
     rows = [variant_row(name, [], scalars) for name, scalars in curves.items()]
     groups = {f"{run.model} seed {run.seed}": (run.model, i) for run in runs
               for i, seed in enumerate(sorted({r.seed for r in runs})) if seed == run.seed}
@@ -424,6 +423,7 @@ def summarize(sweep: dict, log=print) -> Path:
         raise FileNotFoundError(f"{sweep['output']}: no finished run to aggregate")
     output = Path(sweep["output"])
     results = [_run_result(r) for r in finished]
+    scalars = [read_scalars(r.fit_dir) if r.fit_dir.is_dir() else {} for r in finished]  # each fit's events, read once
     for row in BASELINE_ROWS:
         path = output / row / "test_metrics.json"
         if path.is_file():
@@ -445,8 +445,8 @@ def summarize(sweep: dict, log=print) -> Path:
               "MSE over the point-cloud schedules, GGNS k=1 against MGN (ggns.experiments.findings).", "",
               findings_markdown(check_targets(table), head="target")]
     lines += ["## Training of each run and the checkpoint each metric family was tested with", "",
-              _training_markdown(finished, results[:len(finished)])]
-    lines += _learning_markdown(finished, output)
+              _training_markdown(finished, results[:len(finished)], scalars)]
+    lines += _learning_markdown(finished, scalars, output)
     lines += [f"![{figure.stem}]({figure.name})" for figure in write_figures(table, output)]
     path = output / "summary.md"
     path.write_text("\n".join(lines) + "\n")

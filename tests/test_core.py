@@ -312,3 +312,17 @@ def test_normalizer_dict_keys_edge_types():
     assert "normalizers.collider__near__mesh.mean" in norms.state_dict()
     with pytest.raises(KeyError):
         norms({"point": torch.zeros(1, 0)})
+
+
+def test_module_dicts_take_type_tuples_and_keep_the_checkpoint_names():
+    """The per-type module dicts are keyed by node / edge types (PyG-style) but store parameters under
+    the names checkpoints written before them have (`edge_mlp.collider__near__mesh.0.weight`)."""
+    dims = {"mesh": 3, "collider": 2}
+    edges = {MESH_EDGE: 4, ("collider", "near", "mesh"): 4}
+    model = EncodeProcessDecode(dims, edges, 2, latent=8, blocks=2, edge_partition=True)
+    block = model.processor[0]
+    assert set(block.edge_mlp.keys()) == set(edges) and set(model.edge_encoder.keys()) == set(edges)
+    assert block.edge_mlp["collider", "near", "mesh"] is block.edge_mlp[("collider", "near", "mesh")]
+    names = set(model.state_dict())
+    assert {"processor.0.edge_mlp.collider__near__mesh.0.weight", "edge_encoder.collider__near__mesh.weight",
+            "processor.0.node_mlp.mesh.0.weight", "node_encoder.collider.weight"} <= names

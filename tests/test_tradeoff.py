@@ -12,7 +12,7 @@ from ggns.config import load_config
 from ggns.data.module import SimulationDataModule
 
 from ggns.bench.tradeoff import (COLUMNS, model_points, pareto_mask, pareto_plot,
-                                       reference_substeps_for, simulator_points, write_csv)
+                                       reference_substeps_for, simulator_points, tradeoff_csv)
 from ggns.models.simulators import GGNS, MGN, load_simulator
 
 
@@ -96,7 +96,7 @@ def test_pareto_csv_and_plot(sim_rows, tmp_path):
     ]
     front = pareto_mask(rows)
     assert front[0] and front[-2] and not front[-1]  # zero-error reference and fastest model; the dominated one not
-    path = write_csv(rows, tmp_path / "t.csv")
+    path = tradeoff_csv(rows, tmp_path / "t.csv")
     with open(path) as f:
         read = list(csv.DictReader(f))
     assert tuple(read[0]) == COLUMNS and len(read) == len(rows)

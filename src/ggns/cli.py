@@ -27,7 +27,6 @@ from pytorch_lightning.utilities.exceptions import SIGTERMException
 from .data.module import SimulationDataModule
 from .models.simulators import GraphSimulator
 
-SUBCOMMANDS = ("fit", "validate", "test", "predict")
 # Evaluation settings, not part of a trained model: with --ckpt_path they still come from the command
 # line and config (Lightning replaces every other model argument by the checkpoint's hyperparameters).
 EVALUATION_ARGS = ("eval_schedules", "test_m_plus_10", "test_iou")

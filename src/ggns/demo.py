@@ -19,7 +19,7 @@ from .config import CONF_DIR
 from .data.module import SimulationDataModule
 from .evaluation.pictures import rollout_picture
 from .evaluation.schedules import EveryK
-from .markdown import table
+from .reports import markdown_table
 from .viz import plot_trajectories, save_figure
 
 MODELS = ("ggns", "mgn")
@@ -73,9 +73,9 @@ def write_report(runs: list[dict], path: Path, figures: list[Path], preset: str,
         "(GGNS: a point cloud every step; MGN: none; the table below names it). Values: mean ± std over test trajectories; "
         "MSEs in squared task-space units; `k<K>`: a point cloud every K steps, `never`: none after the initial "
         "state. MGN never sees point clouds, so only its `never` rollout exists.", "",
-        table(["metric", *names], [[m, *(_fmt(r["results"].get(m)) for r in runs)] for m in metrics]),
+        markdown_table(["metric", *names], [[m, *(_fmt(r["results"].get(m)) for r in runs)] for m in metrics]),
     ]
-    lines += ["", table(["model", "epochs", "optimizer steps", "fit time (s)", "checkpoint", "logs"],
+    lines += ["", markdown_table(["model", "epochs", "optimizer steps", "fit time (s)", "checkpoint", "logs"],
                         [[r["name"], r["epochs"], r["steps"], f"{r['fit_seconds']:.0f}", f"`{r['checkpoint']}`",
                           f"`{r['log_dir']}`"] for r in runs])]
     lines += ["", *(f"![rollouts]({f.name})" for f in figures), "",

@@ -4,12 +4,10 @@ simulators timed, against the reference figures and goals of conf/bench/models.y
 """
 from __future__ import annotations
 
-import csv
 import os
 import platform
 import statistics
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -20,6 +18,7 @@ from ..data.module import SimulationDataModule
 from ..evaluation.schedules import EveryK, Never, effective_schedules
 from ..graphs.state import ConstructionTimer, state_graph
 from ..models.simulators import MODELS
+from ..reports import write_csv
 from .report import print_table
 from .timing import median_ms, resolve_device, sync, time_rollout
 
@@ -214,11 +213,7 @@ def bench_models(dataset: str = "plate_small", models: tuple[str, ...] = ("ggns"
         print(f"  {line}")
     rows = _csv_rows(train_rows, rollout_rows, dataset, device, machine)
     if output is not None:
-        Path(output).parent.mkdir(parents=True, exist_ok=True)
-        with open(output, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+        write_csv(output, rows, list(rows[0]))
         print(f"\nwrote {len(rows)} rows to {output}")
     return rows
 

@@ -37,7 +37,6 @@ errors are against the finer simulator, model errors against the dataset.
 """
 from __future__ import annotations
 
-import csv
 import math
 import statistics
 from pathlib import Path
@@ -54,6 +53,7 @@ from ..evaluation.evaluate import split_trajectories
 from ..evaluation.metrics import rollout_mse
 from ..evaluation.schedules import effective_schedules
 from ..models.simulators import load_simulator
+from ..reports import write_csv
 from ..scenes import SCENES
 from ..viz import plt, save_figure
 from .report import print_table
@@ -173,17 +173,11 @@ def pareto_mask(rows: list[dict]) -> list[bool]:
     return [not any(qx <= px and qy <= py and (qx, qy) != (px, py) for qx, qy in pts) for px, py in pts]
 
 
-def write_csv(rows: list[dict], path: str | Path) -> Path:
+def tradeoff_csv(rows: list[dict], path: str | Path) -> Path:
     """Rows as CSV with the columns `COLUMNS` (missing ones empty; `pareto` filled in if absent)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     front = pareto_mask(rows) if rows else []
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(COLUMNS), extrasaction="ignore")
-        writer.writeheader()
-        for row, on_front in zip(rows, front):
-            writer.writerow({**row, "pareto": row.get("pareto", on_front)})
-    return path
+    return write_csv(path, [{**row, "pareto": row.get("pareto", on_front)} for row, on_front in zip(rows, front)],
+                     COLUMNS)
 
 
 def pareto_plot(rows: list[dict], path: str | Path) -> Path:
@@ -254,7 +248,7 @@ def tradeoff(dataset: str = "plate_small", checkpoints: dict | None = None, traj
     for row, on_front in zip(rows, pareto_mask(rows)):
         row["pareto"] = on_front
     out = Path(output_dir)
-    csv_path, png_path = write_csv(rows, out / "tradeoff.csv"), pareto_plot(rows, out / "tradeoff.png")
+    csv_path, png_path = tradeoff_csv(rows, out / "tradeoff.csv"), pareto_plot(rows, out / "tradeoff.png")
     print_table(rows, COLUMNS)
     print(f"\nwrote {csv_path} and {png_path}")
     return rows

@@ -19,6 +19,7 @@ from pytorch_lightning.callbacks import BasePredictionWriter
 from pytorch_lightning.loggers import TensorBoardLogger
 
 from ..batch import TrajectoryBatch
+from ..reports import write_json, write_text
 from ..viz import figure_to_image
 from .evaluate import zero_motion_one_step_mse
 from .pictures import rollout_picture
@@ -118,9 +119,9 @@ class TestedCheckpoint(pl.Callback):
         directory = Path(trainer.log_dir or ".")
         table, summary = directory / "test_metrics.md", directory / "test_metrics.json"
         if table.is_file():
-            table.write_text(table.read_text() + "\n" + line + "\n")
+            write_text(table, table.read_text() + "\n" + line + "\n")
         if summary.is_file():
-            summary.write_text(json.dumps({**json.loads(summary.read_text()), CHECKPOINT_KEY: info}, indent=2))
+            write_json(summary, {**json.loads(summary.read_text()), CHECKPOINT_KEY: info})
 
 
 class RolloutPictures(pl.Callback):

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from ..graphs.connectivity import Connectivity
 from ..batch import TrajectoryBatch
-from ..markdown import table
+from ..reports import markdown_table
 from .metrics import batch_iou, m_plus_10_mse, m_plus_10_starts, one_step_mse, rollout_mse
 from .rollout import StepFn, m_plus_10_rollouts, one_step_predictions, rollout
 from .schedules import Never, Schedule
@@ -111,5 +111,5 @@ def metrics_markdown(results: dict[str, dict[str, float]], title: str | None = N
     lines = [f"### {title}", ""] if title else []
     rows = [(name, f"{s['mean']:.4e}", "" if math.isnan(s["std"]) else f"{s['std']:.3e}", s["count"])
             for name, s in results.items()]
-    lines.append(table(["metric", "mean", "std over trajectories", "trajectories"], rows))
+    lines.append(markdown_table(["metric", "mean", "std over trajectories", "trajectories"], rows))
     return "\n".join(lines) + "\n"

@@ -13,7 +13,6 @@ Table layout: {model: {metric: {"mean": float, "std": float, "seeds": int}}}.
 """
 from __future__ import annotations
 
-import csv
 import json
 import math
 from dataclasses import dataclass, field
@@ -21,7 +20,7 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 from ..evaluation.selection import CHECKPOINT_KEY, CHECKPOINTS_KEY
-from ..markdown import table as markdown_table
+from ..reports import markdown_table, write_csv
 
 Table = dict[str, dict[str, dict[str, float]]]
 
@@ -155,9 +154,6 @@ def to_markdown(table: Table, metrics: Sequence[str] | None = None, fmt: str = "
 def to_csv(table: Table, path: str | Path) -> None:
     """Long format: one row per (model, metric) with columns model, metric, mean, std, seeds
     (floats written with repr, so they read back exactly; NaN std as "nan")."""
-    with open(path, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(["model", "metric", "mean", "std", "seeds"])
-        for model, per_metric in table.items():
-            for metric, s in per_metric.items():
-                writer.writerow([model, metric, repr(float(s["mean"])), repr(float(s["std"])), int(s["seeds"])])
+    rows = [{"model": model, "metric": metric, "mean": repr(float(s["mean"])), "std": repr(float(s["std"])),
+             "seeds": int(s["seeds"])} for model, per_metric in table.items() for metric, s in per_metric.items()]
+    write_csv(path, rows, ["model", "metric", "mean", "std", "seeds"])

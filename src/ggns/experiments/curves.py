@@ -11,7 +11,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..markdown import table
+from ..reports import markdown_table
 
 # the curves drawn, in panel order; a variant lacking one (e.g. MGN: no point clouds) leaves it out
 CURVES = ("val/one_step_ratio", "val/rollout_mse_k1", "val/rollout_mse_never", "val/m10_mse", "train/loss_points",
@@ -146,7 +146,7 @@ def markdown_rows(rows: list[dict], threshold: float = RATIO_THRESHOLD, label: s
                  f"{_cell(r['loss_points_late'])} / {_cell(r['loss_no_points_late'])}",
                  f"{_cell(r['validations'])} ({_cell(r['last_val_step'])})"]
         lines.append(cells)
-    return table(head, lines) + "\n"
+    return markdown_table(head, lines) + "\n"
 
 
 def plot_curves(curves: dict[str, dict], path: Path, against: str, title: str = "variant",

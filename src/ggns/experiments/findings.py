@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from ..markdown import table
+from ..reports import markdown_table
 from .aggregate import NoBenefitError, Table, normalized_benefit
 
 
@@ -136,4 +136,4 @@ def check_targets(table: Table, ks=(1, 2, 5, 10)) -> list[Finding]:
 
 
 def findings_markdown(findings: list[Finding], head: str = "paper finding") -> str:
-    return table([head, "on this sweep", "numbers (seed means)"], [(f.claim, f.verdict, f.evidence) for f in findings]) + "\n"
+    return markdown_table([head, "on this sweep", "numbers (seed means)"], [(f.claim, f.verdict, f.evidence) for f in findings]) + "\n"

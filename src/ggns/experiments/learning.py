@@ -21,7 +21,6 @@ learning.csv, curves_steps.png and curves_seconds.png.
 """
 from __future__ import annotations
 
-import csv
 import json
 import os
 import subprocess
@@ -34,6 +33,7 @@ import pytorch_lightning as pl
 from omegaconf import OmegaConf
 
 from ..config import resolve_preset
+from ..reports import write_csv, write_json
 from .curves import CLOCK, COLUMNS, LATE_STEPS, RATIO_THRESHOLD, markdown_rows, plot_curves, read_scalars, variant_row
 from .sweep import Run
 
@@ -149,7 +149,7 @@ def fit_variant(run: Run, threads: int | None = None, log=print) -> Run:
                                 env={**os.environ, **({"OMP_NUM_THREADS": str(threads)} if threads else {})})
     if result.returncode != 0:
         raise RuntimeError(f"fit of variant {run.model} failed (exit {result.returncode}); see {out.name}")
-    marker.write_text(json.dumps({"args": list(run.args), "process_seconds": time.perf_counter() - start}, indent=2))
+    write_json(marker, {"args": list(run.args), "process_seconds": time.perf_counter() - start})
     return run
 
 
@@ -177,11 +177,7 @@ def write_report(spec: dict, log=print) -> Path:
         raise FileNotFoundError(f"{output}: no variant has run yet")
     curves = {r.model: read_scalars(r.fit_dir) for r in runs}
     rows = [variant_row(r.model, spec["variants"][r.model], curves[r.model]) for r in runs]
-    output.mkdir(parents=True, exist_ok=True)
-    with open(output / "learning.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(COLUMNS))
-        writer.writeheader()
-        writer.writerows({k: ("" if v is None else v) for k, v in row.items()} for row in rows)
+    write_csv(output / "learning.csv", rows, COLUMNS)
     figures = [plot_curves(curves, output / f"curves_{x}.png", x) for x in ("steps", "seconds")]
     finished = [r.model for r in runs if (r.fit_dir / FINISHED).is_file()]
     clocked = [r.model for r in runs if CLOCK in curves[r.model]]

@@ -57,7 +57,7 @@ from omegaconf import OmegaConf
 from ..baselines.scores import (ALPHA_SHAPES, GENERATED_MESH_FILE, STATIC, alpha_shapes_metrics,
                                generated_mesh_metrics, static_metrics)
 from ..baselines.scores import ROWS as BASELINE_ROWS
-from .. import markdown
+from ..reports import markdown_table, write_json, write_text
 from ..config import resolve_preset
 from ..data.module import SPLITS, SimulationDataModule
 from ..evaluation.evaluate import metrics_markdown
@@ -230,7 +230,7 @@ def runs_of(sweep: dict) -> list[Run]:
 
 def checkpoints_markdown(checkpoints: dict[str, dict]) -> str:
     """The "checkpoints" entry of a merged test (`Run.merge_tests`) as a markdown table."""
-    return markdown.table(["family", "tested checkpoint", "note"],
+    return markdown_table(["family", "tested checkpoint", "note"],
                           [(family, describe(info), info.get("note") or "") for family, info in checkpoints.items()]) + "\n"
 
 
@@ -263,7 +263,7 @@ def execute(run: Run, threads: int | None = None, log=print) -> Run:
                 raise RuntimeError(f"test of {run.model} seed {run.seed} wrote no {part.metrics_path}")
     merged = run.merge_tests()
     metrics = {name: value for name, value in merged.items() if name != CHECKPOINTS_KEY}
-    run.metrics_path.with_suffix(".md").write_text(
+    write_text(run.metrics_path.with_suffix(".md"),
         metrics_markdown(metrics, f"{run.model} seed {run.seed} test metrics") + "\n"
         + checkpoints_markdown(merged[CHECKPOINTS_KEY]))
     write_json(run.metrics_path, merged)
@@ -393,7 +393,7 @@ def _training_markdown(runs: list[Run], results: list[RunResult], curves: list[d
                 selected += f" = {info['score']:.4g}"
             rows.append((run.model, run.seed, family, info["name"], f"{info['global_step']} / {info['epoch']}", selected,
                          info.get("note") or "", logged))
-    return markdown.table(["model", "seed", "family", "tested checkpoint", "its step / epoch", "selected on", "note",
+    return markdown_table(["model", "seed", "family", "tested checkpoint", "its step / epoch", "selected on", "note",
                            "largest logged step of the fit"], rows) + "\n"
 
 
@@ -436,7 +436,7 @@ def summarize(sweep: dict, log=print) -> Path:
         try:
             benefit = normalized_benefit(table)
             lines += ["## Normalized benefit of point clouds (1 at k = 1, 0 at MGN)", "",
-                      markdown.table(["k", *benefit], [["benefit", *(f"{v:.3f}" for v in benefit.values())]])]
+                      markdown_table(["k", *benefit], [["benefit", *(f"{v:.3f}" for v in benefit.values())]])]
         except ValueError as error:
             lines += ["", f"Normalized benefit not computed: {error}"]
     lines += ["", "## The paper's findings on this sweep", "", findings_markdown(check_findings(table))]
@@ -449,20 +449,12 @@ def summarize(sweep: dict, log=print) -> Path:
     lines += _learning_markdown(finished, scalars, output)
     lines += [f"![{figure.stem}]({figure.name})" for figure in write_figures(table, output)]
     path = output / "summary.md"
-    path.write_text("\n".join(lines) + "\n")
+    write_text(path, "\n".join(lines) + "\n")
     log(f"wrote {path} and {output / 'summary.csv'}")
     return path
 
 
 # ---- the baselines -----------------------------------------------------------------------------
-def write_json(path: Path, data: dict) -> None:
-    """Write via a temporary file and rename, so an interrupted write leaves no partial result."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2))
-    tmp.replace(path)
-
-
 def _test_trajectories(spec: dict):
     module = SimulationDataModule(spec.get("dataset", "plate_small"), data_dir=spec.get("data_dir"),
                                   max_eval_trajectories=spec.get("max_trajectories"), generate_missing=False)

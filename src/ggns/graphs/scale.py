@@ -27,7 +27,7 @@ import torch_cluster
 
 from ..batch import TrajectoryBatch
 from ..config import load_config
-from ..markdown import table
+from ..reports import markdown_table
 from ..trajectory import Trajectory
 from .connectivity import Connectivity, load_connectivity
 from .state import state_graph
@@ -106,7 +106,7 @@ def report(values: dict[str, float], targets: dict[str, list[float]], title: str
         rng = f"{target[0]:g} to {float(target[1]):g}" if target else ""
         mark = ("ok" if verdict[name] else "OUT OF RANGE") if target else ""
         rows.append((name, f"{value:.4g}", rng, mark))
-    return "\n".join([f"### {title}", "", table(["quantity", "value", "target", ""], rows)]) + "\n"
+    return "\n".join([f"### {title}", "", markdown_table(["quantity", "value", "target", ""], rows)]) + "\n"
 
 
 def geometry_report(trajectories: list[Trajectory], source: str, targets: str | Path = "plate",

@@ -36,7 +36,7 @@ from torch import Tensor, nn
 from torch_geometric.data import HeteroData
 
 from ..graphs.types import EDGE_TYPES, NODE_TYPES
-from .normalization import DEFAULT_STD_FLOOR, NodeOrEdgeType, NormalizerDict, type_key
+from .normalization import DEFAULT_STD_FLOOR, NodeOrEdgeType, NormalizerDict, TypeModuleDict
 
 EdgeType = tuple[str, str, str]
 TYPE_ENCODINGS = ("per_type", "one_hot")
@@ -60,7 +60,8 @@ def linear_encoder(in_dim: int, latent: int) -> nn.Linear:
 
 
 def graph_features(data: HeteroData) -> dict[NodeOrEdgeType, Tensor]:
-    """Raw model inputs of a graph: {node type: x [N, F], edge type: edge_attr [E, F]}."""
+    """Raw model inputs of a graph: {node type: x [N, F], edge type: edge_attr [E, F]} (every type
+    must have them: a missing one is an error, not a type silently left out as in `data.x_dict`)."""
     return {**{t: data[t].x for t in data.node_types}, **{t: data[t].edge_attr for t in data.edge_types}}
 
 
@@ -116,59 +117,65 @@ class GraphNetBlock(nn.Module):
         self.node_types, self.edge_types, self.edge_partition = node_types, edge_types, edge_partition
         if edge_partition:
             self.slots = {n: [t for t in edge_types if t[2] == n] for n in node_types}
-            self.edge_mlp = nn.ModuleDict({type_key(t): mlp(3 * latent, latent, mlp_layers) for t in edge_types})
-            self.node_mlp = nn.ModuleDict(
+            self.edge_mlp = TypeModuleDict({t: mlp(3 * latent, latent, mlp_layers) for t in edge_types})
+            self.node_mlp = TypeModuleDict(
                 {n: mlp((1 + len(self.slots[n])) * latent, latent, mlp_layers) for n in node_types})
         else:
             self.edge_mlp = mlp(3 * latent, latent, mlp_layers)
             self.node_mlp = mlp(2 * latent, latent, mlp_layers)
 
     def _run_mlp(self, f: nn.Module, inputs: dict) -> dict:
-        """f per type (a ModuleDict) or one shared f on all types at once."""
-        if isinstance(f, nn.ModuleDict):
-            return {t: f[type_key(t)](v) for t, v in inputs.items()}
+        """f per type (a TypeModuleDict) or one shared f on all types at once."""
+        if isinstance(f, TypeModuleDict):
+            return {t: f[t](v) for t, v in inputs.items()}
         return apply_shared(f, inputs)
 
-    def _edge_updates(self, x: dict[str, Tensor], e: dict[EdgeType, Tensor],
-                      edge_index: dict[EdgeType, Tensor]) -> dict[EdgeType, Tensor]:
+    def _edge_updates(self, x_dict: dict[str, Tensor], edge_attr_dict: dict[EdgeType, Tensor],
+                      edge_index_dict: dict[EdgeType, Tensor]) -> dict[EdgeType, Tensor]:
         """f_E([x_src, x_dst, e]) per edge type, with f_E's first Linear split by input block: the
         node blocks are applied once per node and gathered per edge, so the per-edge work is one
         [L, L] product instead of a [3L, L] product on a concatenation (same function and weights)."""
         shared_projection: dict[str, Tensor] = {}  # node type -> [N, 2L]: [x W_src^T, x W_dst^T] (shared f_E)
         updates = {}
-        for t, index in edge_index.items():
+        for t, index in edge_index_dict.items():
             if t not in self.edge_types:
                 continue
-            f = self.edge_mlp[type_key(t)] if self.edge_partition else self.edge_mlp
-            first, latent = f[0], e[t].shape[1]
+            f = self.edge_mlp[t] if self.edge_partition else self.edge_mlp
+            first, latent = f[0], edge_attr_dict[t].shape[1]
             w_node, w_edge = first.weight[:, : 2 * latent], first.weight[:, 2 * latent:]
             if self.edge_partition:
-                src = x[t[0]] @ w_node[:, :latent].T
-                dst = x[t[2]] @ w_node[:, latent:].T
+                src = x_dict[t[0]] @ w_node[:, :latent].T
+                dst = x_dict[t[2]] @ w_node[:, latent:].T
             else:
                 for n in (t[0], t[2]):
                     if n not in shared_projection:
-                        shared_projection[n] = x[n] @ torch.cat([w_node[:, :latent], w_node[:, latent:]]).T
+                        shared_projection[n] = x_dict[n] @ torch.cat([w_node[:, :latent], w_node[:, latent:]]).T
                 src, dst = shared_projection[t[0]][:, :latent], shared_projection[t[2]][:, latent:]
-            h = src.index_select(0, index[0]) + dst.index_select(0, index[1]) + nn.functional.linear(e[t], w_edge, first.bias)
+            h = (src.index_select(0, index[0]) + dst.index_select(0, index[1])
+                 + nn.functional.linear(edge_attr_dict[t], w_edge, first.bias))
             updates[t] = f[1:](h)
         return updates
 
-    def _aggregates(self, node_type: str, x: Tensor, e: dict[EdgeType, Tensor],
-                    edge_index: dict[EdgeType, Tensor]) -> list[Tensor]:
+    def _aggregates(self, node_type: str, x: Tensor, edge_attr_dict: dict[EdgeType, Tensor],
+                    edge_index_dict: dict[EdgeType, Tensor]) -> list[Tensor]:
+        """The means of the incoming edge latents of the nodes `x` [N, L] of `node_type`."""
         if self.edge_partition:  # one mean per incoming edge type
-            return [mean_aggregate([(e[t], edge_index[t][1])] if t in e else [], len(x), x)
+            return [mean_aggregate([(edge_attr_dict[t], edge_index_dict[t][1])] if t in edge_attr_dict else [],
+                                   len(x), x)
                     for t in self.slots[node_type]]
-        return [mean_aggregate([(e[t], edge_index[t][1]) for t in e if t[2] == node_type], len(x), x)]
+        return [mean_aggregate([(edge_attr_dict[t], edge_index_dict[t][1]) for t in edge_attr_dict
+                                if t[2] == node_type], len(x), x)]
 
-    def forward(self, x: dict[str, Tensor], e: dict[EdgeType, Tensor],
-                edge_index: dict[EdgeType, Tensor]) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
-        """x {node type: [N, L]}, e {edge type: [E, L]}, edge_index {edge type: [2, E]} -> (x', e')."""
-        e = {t: e[t] + update for t, update in self._edge_updates(x, e, edge_index).items()}
-        node_inputs = {n: torch.cat([v, *self._aggregates(n, v, e, edge_index)], dim=1)
-                       for n, v in x.items() if n in self.node_types}
-        x = {n: x[n] + update for n, update in self._run_mlp(self.node_mlp, node_inputs).items()}
-        return x, e
+    def forward(self, x_dict: dict[str, Tensor], edge_attr_dict: dict[EdgeType, Tensor],
+                edge_index_dict: dict[EdgeType, Tensor]) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
+        """Latents x_dict {node type: [N, L]}, edge_attr_dict {edge type: [E, L]} and edge_index_dict
+        {edge type: [2, E]} -> (x_dict', edge_attr_dict')."""
+        edge_attr_dict = {t: edge_attr_dict[t] + update
+                          for t, update in self._edge_updates(x_dict, edge_attr_dict, edge_index_dict).items()}
+        node_inputs = {n: torch.cat([x, *self._aggregates(n, x, edge_attr_dict, edge_index_dict)], dim=1)
+                       for n, x in x_dict.items() if n in self.node_types}
+        x_dict = {n: x_dict[n] + update for n, update in self._run_mlp(self.node_mlp, node_inputs).items()}
+        return x_dict, edge_attr_dict
 
 
 class EncodeProcessDecode(nn.Module):
@@ -199,9 +206,8 @@ class EncodeProcessDecode(nn.Module):
             self.node_encoder = OneHotEncoder(node_types, max(node_dims.values()), latent)
             self.edge_encoder = OneHotEncoder(edge_types, max(edge_dims.values(), default=0), latent)
         else:
-            self.node_encoder = nn.ModuleDict({t: linear_encoder(node_dims[t], latent) for t in node_types})
-            self.edge_encoder = nn.ModuleDict(
-                {type_key(t): linear_encoder(edge_dims[t], latent) for t in edge_types})
+            self.node_encoder = TypeModuleDict({t: linear_encoder(node_dims[t], latent) for t in node_types})
+            self.edge_encoder = TypeModuleDict({t: linear_encoder(edge_dims[t], latent) for t in edge_types})
         # The last block updates only what reaches the decoder: mesh nodes and edges into mesh.
         last = (["mesh"], [t for t in edge_types if t[2] == "mesh"])
         self.processor = nn.ModuleList(
@@ -212,20 +218,20 @@ class EncodeProcessDecode(nn.Module):
     def encode(self, data: HeteroData) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
         """Graph -> encoded latents ({node type: [N, latent]}, {edge type: [E, latent]})."""
         features = self.input_normalizer(graph_features(data))  # KeyError for a type the model lacks
-        nodes = {t: features[t] for t in data.node_types}
-        edges = {t: features[t] for t in data.edge_types}
+        x_dict = {t: features[t] for t in data.node_types}
+        edge_attr_dict = {t: features[t] for t in data.edge_types}
         if self.type_encoding == "one_hot":
-            return self.node_encoder(nodes), self.edge_encoder(edges)
-        return ({t: self.node_encoder[t](v) for t, v in nodes.items()},
-                {t: self.edge_encoder[type_key(t)](v) for t, v in edges.items()})
+            return self.node_encoder(x_dict), self.edge_encoder(edge_attr_dict)
+        return ({t: self.node_encoder[t](x) for t, x in x_dict.items()},
+                {t: self.edge_encoder[t](e) for t, e in edge_attr_dict.items()})
 
     def encode_process(self, data: HeteroData) -> Tensor:
         """Graph -> mesh node latents [N_mesh, latent] after the processor."""
-        x, e = self.encode(data)
-        edge_index = {t: data[t].edge_index for t in data.edge_types}
+        x_dict, edge_attr_dict = self.encode(data)
+        edge_index_dict = {t: data[t].edge_index for t in data.edge_types}  # data.edge_index_dict fails without edges
         for block in self.processor:
-            x, e = block(x, e, edge_index)
-        return x["mesh"]
+            x_dict, edge_attr_dict = block(x_dict, edge_attr_dict, edge_index_dict)
+        return x_dict["mesh"]
 
     def decode(self, latents: Tensor) -> Tensor:
         """Mesh latents [N_mesh, latent] -> [N_mesh, out_dim]."""

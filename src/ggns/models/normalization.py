@@ -11,6 +11,7 @@ from typing import Mapping, Union
 
 import torch
 from torch import Tensor, nn
+from torch_geometric.nn.module_dict import ModuleDict
 
 NodeOrEdgeType = Union[str, tuple[str, str, str]]
 
@@ -23,6 +24,21 @@ DEFAULT_STD_FLOOR = 1e-5
 def type_key(t: NodeOrEdgeType) -> str:
     """Module-dict key of a node type ("mesh") or edge type ("collider__near__mesh")."""
     return t if isinstance(t, str) else "__".join(t)
+
+
+class TypeModuleDict(ModuleDict):
+    """PyG's ModuleDict keyed by node types ("mesh") and edge types (("collider", "near", "mesh")),
+    storing each under its `type_key`, so state dicts keep the parameter names that checkpoints
+    written before it have ("edge_mlp.collider__near__mesh.0.weight")."""
+
+    @classmethod
+    def to_internal_key(cls, key: NodeOrEdgeType) -> str:
+        return type_key(key)
+
+    @classmethod
+    def to_external_key(cls, key: str) -> NodeOrEdgeType:
+        parts = key.split("__")
+        return tuple(parts) if len(parts) == 3 else key
 
 
 class Normalizer(nn.Module):
@@ -96,13 +112,12 @@ class NormalizerDict(nn.Module):
 
     def __init__(self, sizes: Mapping[NodeOrEdgeType, int], std_floor: float = DEFAULT_STD_FLOOR):
         super().__init__()
-        self.normalizers = nn.ModuleDict({type_key(t): Normalizer(f, std_floor) for t, f in sizes.items()})
+        self.normalizers = TypeModuleDict({t: Normalizer(f, std_floor) for t, f in sizes.items()})
 
     def __getitem__(self, t: NodeOrEdgeType) -> Normalizer:
-        key = type_key(t)
-        if key not in self.normalizers:
-            raise KeyError(f"no normalizer for type {t!r}; known: {list(self.normalizers)}")
-        return self.normalizers[key]
+        if t not in self.normalizers:
+            raise KeyError(f"no normalizer for type {t!r}; known: {list(self.normalizers.keys())}")
+        return self.normalizers[t]
 
     def update(self, features: Mapping[NodeOrEdgeType, Tensor]) -> None:
         for t, x in features.items():

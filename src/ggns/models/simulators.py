@@ -19,7 +19,6 @@ limits it), which are saved with the checkpoint.
 from __future__ import annotations
 
 import dataclasses
-import json
 import warnings
 from pathlib import Path
 from typing import Any
@@ -36,6 +35,7 @@ from ..batch import TrajectoryBatch
 from ..graphs.connectivity import Connectivity, load_connectivity
 from ..graphs.state import state_graph
 from ..graphs.types import MESH_EDGE
+from ..reports import write_json, write_text
 from .core import EncodeProcessDecode, graph_features
 from .lr_schedule import scheduled_lr, validate_schedule
 from .normalization import DEFAULT_STD_FLOOR, Normalizer
@@ -276,9 +276,8 @@ class GraphSimulator(pl.LightningModule):
         print("\n" + table)
         log_dir = self.trainer.log_dir
         if log_dir is not None and self.trainer.is_global_zero:
-            Path(log_dir).mkdir(parents=True, exist_ok=True)
-            (Path(log_dir) / "test_metrics.md").write_text(table)
-            (Path(log_dir) / "test_metrics.json").write_text(json.dumps(summary, indent=2))
+            write_text(Path(log_dir) / "test_metrics.md", table)
+            write_json(Path(log_dir) / "test_metrics.json", summary)
         self.test_results = summary
 
     def predict_step(self, batch: TrajectoryBatch, batch_idx: int) -> dict[str, Any]:

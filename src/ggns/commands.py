@@ -1,0 +1,213 @@
+"""The commands of `python -m ggns` besides the Lightning CLI's fit/validate/test/predict (ggns.cli).
+
+One typed, documented function per command; `COMMANDS` maps the command line's words to them
+and `ggns.command_line` builds the parser from their signatures and docstrings (an option per
+parameter: `train_batches` is `--train-batches`). They are also the Python API of the commands:
+`commands.generate(config="plate_tiny", split=["train"], count=3)`. Each command imports what it
+runs when it runs, so building the parser (or `--help`) loads neither torch nor Lightning
+(importing pytorch_lightning alone takes about 5 s here).
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Literal
+
+Split = Literal["train", "val", "test"]
+
+
+def generate(*overrides: str, config: str = "plate", split: Sequence[Split] | None = None, count: int | None = None,
+             seed: int | None = None, output: str | None = None, workers: int | None = None,
+             overwrite: bool = False) -> list[Path]:
+    """Generate dataset splits (simulate, observe, write HDF5).
+
+    Args:
+        overrides: config overrides as key=value, e.g. scene.num_steps=20 (a key the preset lacks is an error)
+        config: preset name in conf/data/ or a YAML path
+        split: split(s) to generate (default: all in the config)
+        count: trajectories per chosen split (default: the config's split sizes; needs --split)
+        seed: the config's seed (trajectory i of a split has a seed derived from it)
+        output: output directory, one <split>.h5 per split (default: the config's)
+        workers: parallel worker processes (default: the config's)
+        overwrite: replace existing split files
+    """
+    from .config import load_config
+    from .data.generate import generate as generate_splits
+
+
+    overrides = list(overrides)
+    for key, value in (("seed", seed), ("output", output), ("workers", workers)):
+        if value is not None:
+            overrides.append(f"{key}={value}")
+    if count is not None:
+        if not split:
+            raise ValueError("--count needs --split (which split gets that many trajectories)")
+        overrides += [f"splits.{s}={count}" for s in split]
+    paths = generate_splits(load_config(config, overrides), list(split) if split else None, overwrite=overwrite)
+    for path in paths:
+        print(path)
+    return paths
+
+
+def geometry(dataset: str = "plate_small", split: Split = "train", trajectories: int = 27, stride: int = 5,
+             targets: str = "plate") -> bool:
+    """Measure a generated dataset's scale (points, neighbours, edges, motion) against the targets.
+
+    Args:
+        dataset: data preset whose generated split is measured
+        split: the split measured
+        trajectories: the split's first n trajectories
+        stride: measure every n-th step
+        targets: targets file, conf/geometry/<name>.yaml or a YAML path
+    """
+    from .data.module import SimulationDataModule
+    from .graphs.scale import geometry_report
+
+
+    data = SimulationDataModule(dataset, generate_missing=False)
+    table, ok = geometry_report(data.trajectories(split)[:trajectories], f"{dataset} {data.path(split)}", targets,
+                                stride)
+    print(table)
+    print("all targets met" if ok else "some targets are not met (OUT OF RANGE above)")
+    return ok
+
+
+def bench_sim(config: str = "plate", trajectories: int = 9, generate: bool = False) -> dict:
+    """Time the ground-truth simulator and the depth sensor (and dataset generation).
+
+    Args:
+        config: data preset
+        trajectories: trajectories timed one by one
+        generate: also time generating all splits of the config with its workers
+    """
+    from .bench import sim as sim_bench
+
+
+    return sim_bench.bench_sim(config, trajectories=trajectories, generate_splits=generate)
+
+
+def bench_models(dataset: str = "plate_small", models: Sequence[str] = ("ggns", "ggns_lstm", "mgn", "mgn_m"),
+                 train_batches: int = 10, rollout_steps: int | None = None,
+                 device: Literal["cpu", "cuda"] = "cpu", output: str | None = None, batch_size: int = 32,
+                 rollout_trajectories: int = 32, repeats: int = 3) -> list[dict]:
+    """Training and rollout throughput of the learned simulators.
+
+    Args:
+        dataset: data preset (train and test splits; generated if missing)
+        models: model configs of conf/plate/
+        train_batches: timed training iterations per model
+        rollout_steps: steps per timed rollout (default: whole test trajectories)
+        device: where the models run
+        output: write the measurements to this CSV
+        batch_size: training windows per batch (paper: 32)
+        rollout_trajectories: trajectories in the batched rollout
+        repeats: timed rollouts per measurement (the median is reported)
+    """
+    from .bench import models as model_bench
+
+
+    return model_bench.bench_models(dataset, tuple(models), train_batches=train_batches, rollout_steps=rollout_steps,
+                                    device=device, output=output, batch_size=batch_size,
+                                    rollout_trajectories=rollout_trajectories, repeats=repeats)
+
+
+def bench_tradeoff(dataset: str = "plate_small", checkpoint: dict[str, str] | None = None, trajectories: int = 4,
+                   coarsen: Sequence[int] = (1, 2, 5), schedules: Sequence[str] = ("every:1", "never"),
+                   grid_nodes: Sequence[int] | None = None, rollout_trajectories: int = 32, repeats: int = 3,
+                   output_dir: str = "lightning_logs/tradeoff") -> list[dict]:
+    """Time per rollout step against rollout error: the simulator and model checkpoints (CSV + Pareto plot).
+
+    Args:
+        dataset: data preset whose test trajectories are scored
+        checkpoint: a model checkpoint to place on the trade-off, as name=path
+        trajectories: test trajectories scored
+        coarsen: simulator time-step coarsening factors
+        schedules: point-cloud schedules of the model rollouts
+        grid_nodes: mesh nodes per side, resolutions for the simulator and the models (default: the preset's)
+        rollout_trajectories: trajectories in the batched rollout
+        repeats: timed rollouts per measurement (the median is reported)
+        output_dir: where tradeoff.csv and tradeoff.png go
+    """
+    from .bench.tradeoff import tradeoff
+
+
+    return tradeoff(dataset, dict(checkpoint or {}), trajectories=trajectories, coarsen=tuple(coarsen),
+                    output_dir=output_dir, schedules=tuple(schedules), batch=rollout_trajectories, repeats=repeats,
+                    grid_nodes=list(grid_nodes) if grid_nodes else None)
+
+
+def bench_learning(*overrides: str, config: str = "plate_ggns", minutes: float | None = None,
+                   parallel: int | None = None, variant: Sequence[str] | None = None, output_dir: str | None = None,
+                   report_only: bool = False) -> Path:
+    """Learning curves of named model variants within a wall-clock budget each (table + plots).
+
+    Args:
+        overrides: learning-file overrides as key=value, e.g. val_every=50
+        config: learning file in conf/learning/ or a YAML path
+        minutes: wall-clock budget per variant (default: the file's)
+        parallel: variants at once (default: the file's)
+        variant: run only these variants (default: all; the report covers every variant with logs)
+        output_dir: where the variants and the report go (default: the file's output)
+        report_only: only write the report from the logs
+    """
+    from .experiments.learning import load_learning, run_learning, write_report
+
+
+    overrides = list(overrides)
+    for key, value in (("minutes", minutes), ("parallel", parallel), ("output", output_dir)):
+        if value is not None:
+            overrides.append(f"{key}={value}")
+    spec = load_learning(config, overrides)
+    return write_report(spec) if report_only else run_learning(spec, variant)
+
+
+def sweep(*overrides: str, config: str = "plate", task: int | None = None, slurm: str | None = None,
+          aggregate_only: bool = False) -> None:
+    """Multi-seed sweep of model configs (fit + test per run, resumable), then baselines and summary.
+
+    Args:
+        overrides: sweep overrides as key=value, e.g. seeds=[0,1] parallel=2
+        config: sweep preset in conf/sweeps/ or a YAML path
+        task: run only this run of the grid (a SLURM array task; no summary)
+        slurm: write a SLURM job-array script for the sweep to this file instead of running
+        aggregate_only: only aggregate the finished runs (e.g. after a SLURM array)
+    """
+    from .experiments.sweep import load_sweep, run_baselines, run_sweep, slurm_script, summarize
+
+
+    spec = load_sweep(config, list(overrides))
+    if slurm:
+        Path(slurm).write_text(slurm_script(spec, config))
+        print(f"wrote {slurm} (submit with sbatch)")
+        return
+    if not aggregate_only:
+        run_sweep(spec, task)
+    if task is None:
+        run_baselines(spec)
+        summarize(spec)
+
+
+def demo(output: str = "lightning_logs/demo", preset: str = "plate_small", minutes: float = 4.0,
+         test_trajectories: int = 9, models: Sequence[str] = ("ggns", "mgn")) -> Path:
+    """The README's main job on a small default: generate, train, test, report.
+
+    Args:
+        output: where the report, pictures and TensorBoard runs go
+        preset: data preset (conf/data/)
+        minutes: wall-clock training budget per model
+        test_trajectories: test trajectories evaluated per model
+        models: model configs of conf/plate/
+    """
+    from .demo import run_demo
+
+
+    return run_demo(output, preset=preset, minutes=minutes, models=tuple(models), test_trajectories=test_trajectories)
+
+
+COMMANDS = {
+    "generate": generate,
+    "geometry": geometry,
+    "bench": {"sim": bench_sim, "models": bench_models, "tradeoff": bench_tradeoff, "learning": bench_learning},
+    "sweep": sweep,
+    "demo": demo,
+}

@@ -9,7 +9,7 @@ STAMP := $(VENV)/.setup-stamp
 
 setup: $(STAMP)
 
-$(STAMP): requirements.txt pyproject.toml scripts/setup.sh
+$(STAMP): requirements.txt pyproject.toml scripts/setup.sh scripts/torch_cluster_subset.py
 	VENV=$(VENV) bash scripts/setup.sh
 	touch $(STAMP)
 

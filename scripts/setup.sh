@@ -22,17 +22,39 @@ fi
 PIP="$VENV/bin/python -m pip"
 TORCH=$(grep -E '^torch==' requirements.txt)
 $PIP install -q "$TORCH" ninja wheel "setuptools>=66"
+# torch-cluster: built from source (no wheel on the registry), by default only the extensions ggns
+# calls (scripts/torch_cluster_subset.py; TORCH_CLUSTER_OPS=all builds the whole package). The wheel
+# is kept in $WHEELS, so a later set-up on this machine (a fresh clone, CI) installs it in seconds.
+TORCH_CLUSTER_OPS=${TORCH_CLUSTER_OPS:-version radius knn}
+WHEELS=${GGNS_WHEEL_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/ggns/wheels}
 if ! "$VENV/bin/python" -c "import torch_cluster" 2>/dev/null; then
-  echo "[setup] building torch-cluster from source (several minutes the first time; pip caches the wheel)"
-  # torch-cluster is nine small extensions of one or two files each, compiled without ninja:
-  # MAX_JOBS has nothing to parallelize inside one. setuptools' build_ext can build whole
-  # extensions in parallel (its `parallel` option), set here through an extra distutils config
-  # file (DIST_EXTRA_CONFIG, read by setuptools >= 66) for this one build.
-  BUILD_CFG=$(mktemp)
-  printf '[build_ext]\nparallel = %s\n' "$(nproc)" > "$BUILD_CFG"
-  DIST_EXTRA_CONFIG="$BUILD_CFG" MAX_JOBS=$(nproc) $PIP install -q --no-build-isolation torch-cluster==1.6.3
-  rm -f "$BUILD_CFG"
+  TORCH_TAG=$("$VENV/bin/python" -c "import torch; print(torch.__version__.replace('+', '_'))")
+  CACHED="$WHEELS/torch-$TORCH_TAG/$(echo "$TORCH_CLUSTER_OPS" | tr ' ' '.')"
+  if ! ls "$CACHED"/torch_cluster-*.whl >/dev/null 2>&1; then
+    echo "[setup] building torch-cluster ($TORCH_CLUSTER_OPS) from source (minutes the first time; the wheel is kept in $CACHED)"
+    # Each extension is one or two files compiled without ninja: MAX_JOBS has nothing to parallelize
+    # inside one. setuptools' build_ext builds whole extensions in parallel (its `parallel` option),
+    # set through an extra distutils config file (DIST_EXTRA_CONFIG, read by setuptools >= 66).
+    WORK=$(mktemp -d)
+    printf '[build_ext]\nparallel = %s\n' "$(nproc)" > "$WORK/build.cfg"
+    $PIP download -q --no-deps --no-binary :all: torch-cluster==1.6.3 -d "$WORK"
+    tar -xzf "$WORK"/torch_cluster-1.6.3.tar.gz -C "$WORK"
+    if [ "$TORCH_CLUSTER_OPS" != all ]; then
+      # shellcheck disable=SC2086
+      "$VENV/bin/python" scripts/torch_cluster_subset.py "$WORK/torch_cluster-1.6.3" $TORCH_CLUSTER_OPS
+    fi
+    mkdir -p "$CACHED"
+    DIST_EXTRA_CONFIG="$WORK/build.cfg" MAX_JOBS=$(nproc) $PIP wheel -q --no-deps --no-build-isolation \
+      "$WORK/torch_cluster-1.6.3" -w "$WORK/wheel"
+    mv "$WORK"/wheel/torch_cluster-*.whl "$CACHED"/
+    rm -rf "$WORK"
+  fi
+  $PIP install -q --no-deps "$CACHED"/torch_cluster-*.whl
 fi
 $PIP install -q -r requirements.txt
 $PIP install -q --no-deps --no-build-isolation -e .
-"$VENV/bin/python" -c "import torch, torch_cluster, torch_geometric, open3d, h5py, pytorch_lightning; print('[setup] ok: torch', torch.__version__)"
+"$VENV/bin/python" -c "
+import torch, torch_cluster, torch_geometric, open3d, h5py, pytorch_lightning
+x = torch.rand(20, 3)
+torch_cluster.radius_graph(x, 0.5), torch_cluster.knn(x, x, 2)  # the operators ggns calls
+print('[setup] ok: torch', torch.__version__, '| torch-cluster', torch_cluster.__version__)"

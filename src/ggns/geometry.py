@@ -66,3 +66,30 @@ def check_cells(cells, num_nodes: int | None = None, name: str = "cells", corner
     if num_nodes is not None and cells.size and (cells.min() < 0 or cells.max() >= num_nodes):
         raise ValueError(f"{name} index outside the {num_nodes} mesh nodes")
     return cells
+
+
+def box_tetrahedra(nodes: tuple[int, int, int], size: tuple[float, float, float] = (1.0, 1.0, 1.0)
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Structured tetrahedral mesh of the box [0, size]: `nodes` = (nx, ny, nz) >= 2 nodes per axis,
+    every hexahedron split into 6 tetrahedra along its main diagonal (Kuhn; conforming, the same
+    split in every cell). Returns positions [nx ny nz, 3] float64 (x fastest) and cells [C, 4]
+    int64, positively oriented."""
+    nx, ny, nz = (int(n) for n in nodes)
+    if min(nx, ny, nz) < 2:
+        raise ValueError(f"box_tetrahedra needs >= 2 nodes per axis, got {nodes}")
+    axes = [np.linspace(0.0, s, n) for s, n in zip(size, (nx, ny, nz))]
+    z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    positions = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    index = np.arange(nx * ny * nz).reshape(nz, ny, nx)
+    corner = index[:-1, :-1, :-1].ravel()  # the (0, 0, 0) corner of each hexahedron
+    step = np.array([1, nx, nx * ny])  # index offset of one step along x, y, z
+    cells = []
+    for order in itertools.permutations(range(3)):  # a path 000 -> 111 along the axes in `order`
+        a = corner
+        b = a + step[order[0]]
+        c = b + step[order[1]]
+        cells.append(np.stack([a, b, c, c + step[order[2]]], axis=1))
+    cells = np.concatenate(cells).astype(np.int64)
+    flip = signed_volumes(positions, cells) < 0
+    cells[flip] = cells[flip][:, [0, 2, 1, 3]]
+    return positions, cells

@@ -25,8 +25,8 @@ def _closest_on_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: 
     q = p - ((p - a) * n).sum(-1, keepdim=True) * n  # projection onto the plane
     # inside test: q on the inner side of all three edges
     inside = torch.ones(q.shape[:-1], dtype=torch.bool)
-    for u, v in ((a, b), (b, c), (c, a)):
-        inside &= (torch.linalg.cross(v - u, q - u) * n).sum(-1) >= 0
+    for u, v in ((a, b), (b, c), (c, a)):  # (torch.linalg.cross broadcasts only equal numbers of dimensions)
+        inside &= (torch.linalg.cross((v - u).expand_as(q), q - u) * n).sum(-1) >= 0
     best = q
     dist = torch.where(inside, ((p - q) ** 2).sum(-1), torch.full(q.shape[:-1], math.inf, dtype=p.dtype))
     for u, v in ((a, b), (b, c), (c, a)):

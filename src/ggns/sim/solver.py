@@ -10,6 +10,10 @@ collider at the step's end). Newton uses the SPD warped stiffness and an Armijo 
 on Phi, so every step decreases the potential: unconditionally stable, no oscillation.
 Multiplier updates repeat until no node is inside a collider by more than the tolerance.
 Contact is node-to-surface and frictionless.
+
+The linear algebra (matrix format, factorization) is a back end from `linalg` chosen by
+`SolverConfig.linear_solver`: dense Cholesky or sparse LDL^T; the Newton loop, line search,
+contact and error reporting are the same for both.
 """
 from __future__ import annotations
 
@@ -19,6 +23,7 @@ import torch
 
 from .contact import signed_distance
 from .fem import ElasticBody
+from .linalg import LINEAR_SOLVERS, SPARSE_MIN_FREE_DOFS, linear_algebra
 
 
 class SimulationError(RuntimeError):
@@ -36,6 +41,9 @@ class SolverConfig:
     contact_tolerance: float = 1e-4  # max penetration at the end of a step, m
     contact_stiffness: float = 100.0  # penalty per node, relative to its own mass+stiffness diagonal
     max_contact_iterations: int = 40
+    # "dense" (torch Cholesky), "sparse" (scipy SuperLU) or "auto": sparse from
+    # SPARSE_MIN_FREE_DOFS free unknowns on (docs/simulator.md, "Linear solver")
+    linear_solver: str = "auto"
 
     def __post_init__(self) -> None:
         if not self.dt > 0:
@@ -43,6 +51,9 @@ class SolverConfig:
         for name in ("newton_tolerance", "contact_tolerance", "contact_stiffness"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.linear_solver not in LINEAR_SOLVERS:
+            raise ValueError(f"linear_solver must be one of {LINEAR_SOLVERS} (\"auto\": sparse from "
+                             f"{SPARSE_MIN_FREE_DOFS} free unknowns on), got {self.linear_solver!r}")
 
 
 @dataclass
@@ -72,6 +83,7 @@ class Simulator:
         if fixed.shape != (n, d):
             raise ValueError(f"fixed must be [N] or [N, d] = [{n}, {d}], got {tuple(fixed.shape)}")
         self.free = ~fixed.reshape(-1)  # [N d]
+        self.linalg = linear_algebra(config.linear_solver, body, self.free)
         gravity = (0.0,) * d if config.gravity is None else tuple(config.gravity)
         if len(gravity) != d:
             raise ValueError(f"gravity must have {d} components, got {gravity}")
@@ -88,12 +100,6 @@ class Simulator:
         self.steps_taken = 0
 
     # ---- assembly -------------------------------------------------------------------
-    def _stiffness(self, R: torch.Tensor) -> torch.Tensor:
-        nd = self.body.num_nodes * self.body.dim
-        K = torch.zeros(nd * nd, dtype=torch.float64)
-        K.index_add_(0, self.body.hess_rows * nd + self.body.hess_cols, self.body.warped_stiffness(R))
-        return K.view(nd, nd)
-
     def _contact(self, x: torch.Tensor, colliders: list[Collider], want_hessian: bool):
         """AL contact term: value, gradient [N, d], Gauss-Newton Hessian blocks, per-collider phi."""
         value = x.new_zeros(())
@@ -125,11 +131,12 @@ class Simulator:
         free = self.free
         for it in range(1, self.config.max_newton_iterations + 1):
             g, H = gradient_hessian(x)
-            g, H = g.reshape(-1)[free], H[free][:, free]
-            L, info = torch.linalg.cholesky_ex(H)
-            if info.item() != 0:
-                raise SimulationError(f"{what}: Newton matrix not positive definite (Dirichlet nodes missing?)")
-            dx_free = -torch.cholesky_solve(g[:, None], L)[:, 0]
+            g = g.reshape(-1)[free]
+            dx_free = self.linalg.solve(H, g)
+            if dx_free is None:
+                raise SimulationError(f"{what}: Newton matrix not positive definite at iteration {it} "
+                                      f"({self.linalg.name} solver; Dirichlet nodes missing?)")
+            dx_free = -dx_free
             dx = torch.zeros_like(x).reshape(-1)
             dx[free] = dx_free
             dx = dx.view_as(x)
@@ -172,26 +179,26 @@ class Simulator:
         else:
             x_pred = torch.where(fixed, x, x_pred)
         M = self.mass_dofs.view_as(x)
+        la = self.linalg
         _, R_start = body.gradient(x)
-        D = body.material.rayleigh_stiffness * self._stiffness(R_start)
-        D = D + torch.diag(body.material.rayleigh_mass * self.mass_dofs)
-        Hconst = D / h + torch.diag(self.mass_dofs / h**2)
-        node_dofs = torch.arange(body.num_nodes * body.dim).view(-1, body.dim)
+        D = body.material.rayleigh_stiffness * la.stiffness(R_start)
+        D = D + la.diag(body.material.rayleigh_mass * self.mass_dofs)
+        Hconst = D / h + la.diag(self.mass_dofs / h**2)
 
         def potential(y):
             dy, dn = (y - x_pred).reshape(-1), (y - x).reshape(-1)
-            value = 0.5 * (self.mass_dofs * dy * dy).sum() / h**2 + dn @ (D @ dn) / (2 * h)
+            value = 0.5 * (self.mass_dofs * dy * dy).sum() / h**2 + dn @ la.matvec(D, dn) / (2 * h)
             value = value + body.energy(y) - (self.gravity_force * y).sum()
             return value + self._contact(y, colliders, False)[0]
 
         def gradient_hessian(y):
             ge, R = body.gradient(y)
             dn = (y - x).reshape(-1)
-            g = M * (y - x_pred) / h**2 + ge - self.gravity_force + (D @ dn).view_as(y) / h
+            g = M * (y - x_pred) / h**2 + ge - self.gravity_force + la.matvec(D, dn).view_as(y) / h
             _, gc, hc, _ = self._contact(y, colliders, True)
-            H = Hconst + self._stiffness(R)
+            H = Hconst + la.stiffness(R)
             for blocks in hc:
-                H[node_dofs[:, :, None], node_dofs[:, None, :]] += blocks
+                H = la.add_node_blocks(H, blocks)
             return g + gc, H
 
         newton_total, y = 0, x_pred
@@ -228,7 +235,7 @@ class Simulator:
 
         def gradient_hessian(y):
             g, R = body.gradient(y)
-            return g - f, self._stiffness(R)
+            return g - f, self.linalg.stiffness(R)
 
         return self._minimize(x0.to(torch.float64), potential, gradient_hessian, "static equilibrium")[0]
 

@@ -121,7 +121,7 @@ def test_a_command_cannot_grow_an_undocumented_or_untyped_option(function, messa
 
 def test_every_ggns_command_builds_and_documents_its_options(capsys):
     parser = build_parser(COMMANDS, prog="ggns")  # raises on an undocumented or unsupported parameter
-    for argv in (["generate"], ["geometry"], ["bench", "sim"], ["bench", "models"], ["bench", "tradeoff"],
+    for argv in (["generate"], ["geometry"], ["bench", "sim"], ["bench", "solvers"], ["bench", "models"], ["bench", "tradeoff"],
                  ["bench", "learning"], ["sweep"], ["demo"]):
         with pytest.raises(SystemExit):
             parser.parse_args([*argv, "--help"])

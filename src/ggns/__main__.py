@@ -6,6 +6,7 @@
     geometry  measure a generated dataset's scale against the paper's radii, noise and point count
     sweep     multi-seed sweeps of model configs
     bench     benchmarks (`bench sim`: simulator and dataset generation speed;
+              `bench solvers`: the simulator's dense and sparse linear solvers on a 3D block;
               `bench models`: training and rollout throughput of the learned simulators;
               `bench tradeoff`: time per rollout step against rollout error, CSV + Pareto plot;
               `bench learning`: learning curves of model variants per CPU-second, table + plots)

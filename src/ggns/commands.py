@@ -86,6 +86,20 @@ def bench_sim(config: str = "plate", trajectories: int = 9, generate: bool = Fal
     return sim_bench.bench_sim(config, trajectories=trajectories, generate_splits=generate)
 
 
+def bench_solvers(nodes: Sequence[int] = (10, 6, 6), frames: int = 12,
+                  solvers: Sequence[Literal["dense", "sparse"]] = ("dense", "sparse")) -> dict:
+    """The simulator's linear solvers (dense, sparse) timed on a tetrahedral block with a pulled node.
+
+    Args:
+        nodes: nodes per axis of the block (1 x 0.6 x 0.6 m)
+        frames: frames simulated per solver (medians reported)
+        solvers: the linear solvers timed
+    """
+    from .bench import sim as sim_bench
+
+    return sim_bench.bench_linear_solvers(tuple(nodes), frames=frames, solvers=tuple(solvers))
+
+
 def bench_models(dataset: str = "plate_small", models: Sequence[str] = ("ggns", "ggns_lstm", "mgn", "mgn_m"),
                  train_batches: int = 10, rollout_steps: int | None = None,
                  device: Literal["cpu", "cuda"] = "cpu", output: str | None = None, batch_size: int = 32,
@@ -207,7 +221,8 @@ def demo(output: str = "lightning_logs/demo", preset: str = "plate_small", minut
 COMMANDS = {
     "generate": generate,
     "geometry": geometry,
-    "bench": {"sim": bench_sim, "models": bench_models, "tradeoff": bench_tradeoff, "learning": bench_learning},
+    "bench": {"sim": bench_sim, "solvers": bench_solvers, "models": bench_models, "tradeoff": bench_tradeoff,
+              "learning": bench_learning},
     "sweep": sweep,
     "demo": demo,
 }

@@ -5,29 +5,19 @@ import pytest
 import torch
 
 from ggns.config import load_config
-from ggns.geometry import boundary_facets, box_tetrahedra, signed_volumes
+from ggns.geometry import boundary_facets, box_tet_mesh
 from ggns.scenes.plate import collider_path, plate_material, plate_mesh, sample_spec
 from ggns.sim.fem import ElasticBody
 from ggns.sim.linalg import SPARSE_MIN_FREE_DOFS, DenseLinearAlgebra, SparseLinearAlgebra
+from ggns.sim.contact import signed_distance
 from ggns.sim.material import Material
 from ggns.sim.run import simulate
 from ggns.sim.solver import Collider, Simulator, SolverConfig
 
 
-def test_box_tetrahedra_is_a_conforming_positive_mesh():
-    X, cells = box_tetrahedra((3, 4, 5), size=(1.0, 2.0, 3.0))
-    assert X.shape == (60, 3) and cells.shape == (6 * 2 * 3 * 4, 4)
-    volumes = signed_volumes(X, cells)
-    assert volumes.min() > 0 and volumes.sum() == pytest.approx(6.0)
-    # conforming: only the 2 x 52 triangles of the box's surface quads belong to a single cell
-    assert len(boundary_facets(cells)) == 2 * 2 * (2 * 3 + 2 * 4 + 3 * 4)
-    with pytest.raises(ValueError, match="2 nodes"):
-        box_tetrahedra((1, 3, 3))
-
-
 def block(nodes=(5, 4, 4)):
     """A tet block with its bottom third clamped and its top centre node prescribed."""
-    X, cells = box_tetrahedra(nodes, size=(1.0, 0.6, 0.6))
+    X, cells = box_tet_mesh((0, 0, 0), (1.0, 0.6, 0.6), [n - 1 for n in nodes])
     fixed = X[:, 2] < 0.2 + 1e-9
     pulled = int(np.argmin(((X - [0.5, 0.3, 0.6]) ** 2).sum(1)))
     fixed[pulled] = True
@@ -63,7 +53,7 @@ def test_sparse_and_dense_trajectories_agree_on_a_tet_block():
     """Pulled node, gravity, damping and a cube collider pressing on the top: same states, same
     Newton iteration counts."""
     body, fixed, pulled = block()
-    cube, cube_cells = box_tetrahedra((2, 2, 2), size=(0.3, 0.3, 0.3))
+    cube, cube_cells = box_tet_mesh((0, 0, 0), (0.3, 0.3, 0.3), 1)
     faces = torch.tensor(boundary_facets(cube_cells, cube))
     cube = torch.tensor(cube) + torch.tensor([0.05, 0.15, 0.62])  # just above the top, off the pulled node
     states, iterations = {}, {}
@@ -117,9 +107,7 @@ def test_unknown_linear_solver_is_refused():
 
 def test_signed_distance_to_a_3d_cube():
     """3D colliders (triangle meshes): distance, sign and normal against the analytic unit cube."""
-    from ggns.sim.contact import signed_distance
-
-    cube, cube_cells = box_tetrahedra((3, 3, 3))
+    cube, cube_cells = box_tet_mesh((0, 0, 0), (1, 1, 1), 2)
     faces = torch.tensor(boundary_facets(cube_cells, cube))
     p = torch.tensor([[0.5, 0.5, 1.2], [0.5, 0.4, 0.9], [1.3, 1.4, 0.5], [0.2, 0.5, 0.5]], dtype=torch.float64)
     phi, normal = signed_distance(p, torch.tensor(cube), faces)

@@ -68,28 +68,46 @@ def check_cells(cells, num_nodes: int | None = None, name: str = "cells", corner
     return cells
 
 
-def box_tetrahedra(nodes: tuple[int, int, int], size: tuple[float, float, float] = (1.0, 1.0, 1.0)
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Structured tetrahedral mesh of the box [0, size]: `nodes` = (nx, ny, nz) >= 2 nodes per axis,
-    every hexahedron split into 6 tetrahedra along its main diagonal (Kuhn; conforming, the same
-    split in every cell). Returns positions [nx ny nz, 3] float64 (x fastest) and cells [C, 4]
-    int64, positively oriented."""
-    nx, ny, nz = (int(n) for n in nodes)
-    if min(nx, ny, nz) < 2:
-        raise ValueError(f"box_tetrahedra needs >= 2 nodes per axis, got {nodes}")
-    axes = [np.linspace(0.0, s, n) for s, n in zip(size, (nx, ny, nz))]
-    z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
-    positions = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
-    index = np.arange(nx * ny * nz).reshape(nz, ny, nx)
-    corner = index[:-1, :-1, :-1].ravel()  # the (0, 0, 0) corner of each hexahedron
-    step = np.array([1, nx, nx * ny])  # index offset of one step along x, y, z
-    cells = []
-    for order in itertools.permutations(range(3)):  # a path 000 -> 111 along the axes in `order`
-        a = corner
-        b = a + step[order[0]]
-        c = b + step[order[1]]
-        cells.append(np.stack([a, b, c, c + step[order[2]]], axis=1))
-    cells = np.concatenate(cells).astype(np.int64)
-    flip = signed_volumes(positions, cells) < 0
-    cells[flip] = cells[flip][:, [0, 2, 1, 3]]
+def box_tet_mesh(lo, hi, divisions) -> tuple[np.ndarray, np.ndarray]:
+    """Structured tetrahedral mesh of the axis-aligned box [lo, hi].
+
+    The box is cut into divisions[0] x divisions[1] x divisions[2] hexahedral cells, each split
+    into the 6 tetrahedra of its Kuhn (Freudenthal) subdivision: every tetrahedron runs from the
+    cell's low corner to its high corner along one permutation of the axes. All cells share the
+    main diagonal direction, so neighbouring cells' tetrahedra meet face to face (the mesh is
+    conforming), and every tetrahedron is oriented to positive signed volume.
+
+    Args:
+        lo: Low corner, 3 numbers.
+        hi: High corner, 3 numbers, each strictly greater than lo's.
+        divisions: Cells per axis, one positive int for all axes or 3 of them.
+
+    Returns:
+        positions: float64 [N, 3] with N = prod(divisions + 1); node (i, j, k) has index
+            (i * (ny + 1) + j) * (nz + 1) + k.
+        cells: int64 [6 * prod(divisions), 4] tetrahedra.
+
+    Raises:
+        ValueError: lo/hi not 3 finite numbers with lo < hi, or divisions not positive integers.
+    """
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    if lo.shape != (3,) or hi.shape != (3,) or not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        raise ValueError(f"box corners must be 3 finite numbers each, got lo={lo.tolist()} hi={hi.tolist()}")
+    if not (lo < hi).all():
+        raise ValueError(f"box is empty: lo={lo.tolist()} must be below hi={hi.tolist()} on every axis")
+    n = np.broadcast_to(np.asarray(divisions), (3,))
+    if not np.issubdtype(n.dtype, np.integer) or (n < 1).any():
+        raise ValueError(f"divisions must be positive integers (one or 3), got {divisions!r}")
+    n = n.astype(np.int64)
+    axes = [np.linspace(lo[a], hi[a], n[a] + 1) for a in range(3)]
+    positions = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    stride = np.array([(n[1] + 1) * (n[2] + 1), n[2] + 1, 1])
+    corner = np.stack(np.meshgrid(*(np.arange(m) for m in n), indexing="ij"), axis=-1).reshape(-1, 3) @ stride
+    tets = []
+    for perm in itertools.permutations(range(3)):
+        steps = np.cumsum(stride[list(perm)])  # walk from the low corner along the permuted axes
+        tets.append(np.stack([corner, *(corner + s for s in steps)], axis=1))
+    cells = np.concatenate(tets, axis=0)
+    negative = signed_volumes(positions, cells) < 0
+    cells[negative] = cells[negative][:, [1, 0, 2, 3]]
     return positions, cells

@@ -13,7 +13,7 @@ import torch
 
 from ..config import load_config
 from ..data.generate import generate, trajectory_seed
-from ..geometry import box_tetrahedra
+from ..geometry import box_tet_mesh
 from ..scenes import SCENES
 from ..sensors.camera import DepthSensor, SensorConfig
 from ..sim.fem import ElasticBody
@@ -71,7 +71,7 @@ def bench_linear_solvers(nodes: tuple[int, int, int] = (10, 6, 6), frames: int =
     node is pulled up and sideways at 0.5 m/s, on one torch thread: per solver the median ms per
     frame, Newton iterations per frame, ms per Newton iteration, and ms of one factor + solve of the
     Newton matrix alone, over `frames` frames; and the largest position difference between solvers."""
-    X, cells = box_tetrahedra(nodes, size=(1.0, 0.6, 0.6))
+    X, cells = box_tet_mesh((0, 0, 0), (1.0, 0.6, 0.6), [n - 1 for n in nodes])
     fixed = X[:, 2] < 0.2 + 1e-9  # the bottom third of the height
     pulled = int(np.argmin(((X - [0.5, 0.3, 0.6]) ** 2).sum(1)))
     fixed[pulled] = True

@@ -1,5 +1,6 @@
-"""Evaluation: rollout metrics (MSE variants, 2D mesh IoU) and point-cloud schedules."""
+"""Evaluation: rollout metrics (MSE variants, 2D and 3D mesh IoU) and point-cloud schedules."""
 from .metrics import (
+    VolumeIoU,
     batch_iou,
     m_plus_10_mse,
     m_plus_10_starts,
@@ -8,6 +9,7 @@ from .metrics import (
     per_step_curve,
     rollout_mse,
     step_mse,
+    tet_mesh_iou,
 )
 from .schedules import EveryK, FirstM, Never, Schedule, parse_schedule
 
@@ -16,6 +18,7 @@ __all__ = [
     "FirstM",
     "Never",
     "Schedule",
+    "VolumeIoU",
     "batch_iou",
     "m_plus_10_mse",
     "m_plus_10_starts",
@@ -25,4 +28,5 @@ __all__ = [
     "per_step_curve",
     "rollout_mse",
     "step_mse",
+    "tet_mesh_iou",
 ]

@@ -91,7 +91,7 @@ def generate(config: dict, splits: list[str] | None = None, *, overwrite: bool =
     if existing and not overwrite:
         raise FileExistsError(f"{existing} already exist; pass --overwrite (overwrite=True) to replace them")
     workers = max(1, int(config["workers"]))
-    dim = int(config["scene"].get("dim", 2))
+    dim = SCENES[name].DIM
     pool, threads = None, torch.get_num_threads()
     if workers > 1:
         pool = mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(config,))

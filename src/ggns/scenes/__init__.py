@@ -1,9 +1,9 @@
 """Scenes: each module builds meshes, samples scene parameters and produces `Trajectory`s.
 
-A scene module provides `check_config(config)` (refuses bad settings up front),
+A scene module provides `DIM` (its spatial dimension), `check_config(config)` (refuses bad settings up front),
 `num_combinations(scene_cfg)` (shape x material combinations that
 balanced splits cycle through) and `make_trajectory(config, combination, seed, sensor)`.
 """
-from . import plate
+from . import plate, tissue
 
-SCENES = {"plate": plate}
+SCENES = {"plate": plate, "tissue": tissue}

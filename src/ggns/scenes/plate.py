@@ -17,6 +17,9 @@ from ..sim.run import simulate
 from ..sim.solver import SolverConfig
 
 
+DIM = 2  # spatial dimension of the scene
+
+
 @dataclass(frozen=True)
 class PlateSpec:
     """One sampled plate trajectory: shape, material and collider path."""

@@ -9,7 +9,7 @@ returned points keep (x, y) only. All lengths are in simulation units.
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -172,13 +172,16 @@ class DepthSensor:
         collider_vertices: np.ndarray | None,
         collider_faces: np.ndarray | None,
         rng: np.random.Generator | None = None,
+        occluders: Sequence[tuple[np.ndarray, np.ndarray]] = (),
     ) -> np.ndarray:
         """Point cloud [P,d] float32 of the deformable object's visible surface.
 
         positions [N,d] (d = 2 or 3), cells [C,d+1]; collider_vertices [K,d] and
         collider_faces [F,d] (segments of a closed polyline in 2D, triangles in 3D) or both
-        None. Points are voxel-down-sampled, sorted lexicographically and, when
-        noise_std > 0, perturbed with N(0, noise_std^2) drawn from `rng`.
+        None. occluders (3D only): further triangle meshes (vertices [V,3], triangles [F,3]) that
+        block rays and give no points, e.g. a static organ in front of the object or a gripper.
+        Points are voxel-down-sampled, sorted lexicographically and, when noise_std > 0,
+        perturbed with N(0, noise_std^2) drawn from `rng`.
         """
         cfg = self.config
         if cfg.noise_std > 0.0 and rng is None:
@@ -199,6 +202,14 @@ class DepthSensor:
             cv = np.asarray(collider_vertices, dtype=np.float64)
             cf = np.asarray(collider_faces, dtype=np.int64)
             meshes.append(_collider_mesh_2d(cv, cf, h) if d == 2 else (cv, cf))
+        if len(occluders) and d != 3:
+            raise ValueError("occluders are 3D triangle meshes; a 2D scene's occluder is its collider")
+        for i, (vertices, triangles) in enumerate(occluders):
+            vertices, triangles = np.asarray(vertices, dtype=np.float64), np.asarray(triangles, dtype=np.int64)
+            if vertices.ndim != 2 or vertices.shape[1] != 3 or triangles.ndim != 2 or triangles.shape[1] != 3:
+                raise ValueError(f"occluder {i}: expected vertices [V,3] and triangles [F,3], got "
+                                 f"{vertices.shape}, {triangles.shape}")
+            meshes.append((vertices, triangles))
 
         scene = o3d.t.geometry.RaycastingScene()
         ids = [

@@ -1,0 +1,108 @@
+"""The Tissue Manipulation scene (`ggns.scenes.tissue`) on its tiny preset: real simulation, real
+Open3D raycasting and real HDF5 files, and a fit + test of each model family through the CLI."""
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from ggns.__main__ import main
+from ggns.config import load_config
+from ggns.data.generate import generate
+from ggns.data.schema import read_trajectories
+from ggns.geometry import boundary_facets
+from ggns.scenes import tissue
+from ggns.sensors.camera import DepthSensor, PinholeCamera, SensorConfig
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """The tiny preset's splits (3/2/2 trajectories) and its config; the train split's trajectories
+    (one per material)."""
+    out = tmp_path_factory.mktemp("tissue_tiny")
+    config = load_config("tissue_tiny", [f"output={out}"])
+    train, _, _ = generate(config, ["train", "val", "test"], progress=False)
+    return config, read_trajectories(train)
+
+
+def test_mesh_fixed_layer_and_grasp_candidates():
+    scene = load_config("tissue")["scene"]
+    rest, cells, fixed = tissue.tissue_mesh(scene)
+    assert rest.shape == (360, 3) and cells.shape == (6 * 11 * 9 * 2, 4)
+    assert fixed.sum() == 120 and np.allclose(rest[fixed, 2], -0.6)
+    candidates = tissue.grasp_candidates(scene, rest)
+    assert len(candidates) == 19 == len(set(candidates.tolist()))
+    assert np.allclose(rest[candidates, 2], -0.464)
+
+
+def test_grasped_patch_follows_the_gripper_and_the_bottom_stays(tiny):
+    config, trajectories = tiny
+    scene = config["scene"]
+    assert sorted(t.poissons_ratio for t in trajectories) == [-0.9, 0.0, 0.49]
+    for traj in trajectories:
+        assert np.isfinite(traj.positions).all() and np.isfinite(traj.points).all()
+        path = traj.collider_positions[:, 0]  # the gripper: one collider node
+        assert traj.collider_positions.shape == (traj.num_steps, 1, 3) and traj.collider_faces.shape == (0, 3)
+        held = tissue.grasped_patch(scene, traj.rest_positions, traj.params["grasped_node"])
+        assert len(held) == traj.params["grasped_nodes"] == 5 and traj.fixed[held].all()
+        np.testing.assert_allclose(traj.positions[:, held] - traj.rest_positions[held],
+                                   np.broadcast_to((path - path[0])[:, None], (traj.num_steps, len(held), 3)), atol=1e-9)
+        assert np.linalg.norm(path[-1] - path[0]) > 0.02  # it moved
+        bottom = np.isclose(traj.rest_positions[:, 2], -0.6)
+        np.testing.assert_array_equal(traj.positions[:, bottom], np.broadcast_to(traj.rest_positions[bottom],
+                                                                                 (traj.num_steps, bottom.sum(), 3)))
+        free = ~traj.fixed
+        assert np.abs(traj.positions[:, free] - traj.rest_positions[free]).max() < 0.3  # bounded response
+
+
+def test_points_lie_on_the_deformed_surface(tiny):
+    config, trajectories = tiny
+    voxel = config["sensor"]["voxel_size"]
+    for traj in trajectories:
+        counts = np.diff(traj.point_offsets)
+        assert 700 <= counts.min() and counts.max() <= 1100
+        for t in (0, traj.num_steps - 1):
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(traj.positions[t].astype(np.float32),
+                                boundary_facets(traj.cells, traj.positions[t]).astype(np.uint32))
+            distance = scene.compute_distance(traj.point_cloud(t).astype(np.float32)).numpy()
+            assert distance.max() < voxel  # a voxel's centroid of surface hits lies within a voxel of the surface
+
+
+def test_a_known_occluder_hides_what_is_behind_it():
+    """One camera above the rest block; a plate above its x < 0 half: no point of that half is seen."""
+    scene = load_config("tissue")["scene"]
+    rest, cells, _ = tissue.tissue_mesh(scene)
+    camera = PinholeCamera(eye=(0.0, 0.0, 2.0), look_at=(0.0, 0.0, -0.5), up=(0.0, 1.0, 0.0), fov_deg=50.0,
+                           width_px=120, height_px=120)
+    sensor = DepthSensor(SensorConfig(cameras=(camera,), voxel_size=0.03))
+    plate = np.array([[-2.0, -2.0, 0.0], [0.0, -2.0, 0.0], [0.0, 2.0, 0.0], [-2.0, 2.0, 0.0]])
+    occluder = (plate, np.array([[0, 1, 2], [0, 2, 3]]))
+    seen = sensor.observe(rest, cells, None, None)
+    hidden = sensor.observe(rest, cells, None, None, occluders=[occluder])
+    assert (seen[:, 0] < -0.1).sum() > 50  # without it the camera sees that half
+    # rays reaching x < 0 on the top (z = -0.464) pass the plane z = 0 at x < 0: all blocked
+    assert (hidden[:, 0] < -1e-6).sum() == 0
+    assert len(hidden) > 0.4 * len(seen)
+    with pytest.raises(ValueError, match="occluder 0"):
+        sensor.observe(rest, cells, None, None, occluders=[(plate[:, :2], occluder[1])])
+
+
+@pytest.mark.parametrize("model", ["ggns", "mgn_m"])
+def test_fit_and_test_through_the_cli_on_tiny_tissue(tiny, tmp_path, model):
+    config, _ = tiny
+    data_dir = config["output"]
+    common = ["--config", f"conf/tissue/{model}.yaml", "--data.dataset", "tissue_tiny", "--data.data_dir", str(data_dir),
+              "--data.generate_missing", "false", "--data.batch_size", "8",
+              "--trainer.logger.init_args.save_dir", str(tmp_path), "--trainer.logger.init_args.version", "v",
+              "--model.init_args.latent", "16", "--model.init_args.blocks", "2", "--trainer.enable_progress_bar", "false",
+              "--trainer.enable_model_summary", "false"]
+    main(["fit", *common, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
+          "--trainer.limit_val_batches", "1", "--trainer.check_val_every_n_epoch", "1"])
+    checkpoint = tmp_path / f"tissue_{model}" / "v" / "checkpoints" / "last.ckpt"
+    assert checkpoint.is_file()
+    main(["test", *common[:-4], "--trainer.logger.init_args.version", "test", "--ckpt_path", str(checkpoint)])
+    metrics = (tmp_path / f"tissue_{model}" / "test" / "test_metrics.md").read_text()
+    assert "rollout_mse_never" in metrics and "m10_mse" in metrics
+    if model == "ggns":
+        assert "rollout_mse_k1" in metrics

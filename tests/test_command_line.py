@@ -101,7 +101,7 @@ def untyped(a=1):
     """
 
 
-def required(a: int):
+def required_flag(a: bool):
     """Required.
 
     Args:
@@ -109,10 +109,20 @@ def required(a: int):
     """
 
 
+def with_required(path: str, n: int = 1):
+    """Has a required option.
+
+    Args:
+        path: where
+        n: how many
+    """
+    return path, n
+
+
 @pytest.mark.parametrize("function, message", [
     (undocumented, "undocumented(b): parameter without a description"),
     (untyped, "untyped(a): parameter without a type annotation"),
-    (required, "required(a): every option needs a default"),
+    (required_flag, "required_flag(a): only int, float, str and Literal options can be required"),
 ])
 def test_a_command_cannot_grow_an_undocumented_or_untyped_option(function, message):
     with pytest.raises(TypeError, match=message.replace("(", r"\(").replace(")", r"\)")):
@@ -122,7 +132,7 @@ def test_a_command_cannot_grow_an_undocumented_or_untyped_option(function, messa
 def test_every_ggns_command_builds_and_documents_its_options(capsys):
     parser = build_parser(COMMANDS, prog="ggns")  # raises on an undocumented or unsupported parameter
     for argv in (["generate"], ["geometry"], ["bench", "sim"], ["bench", "solvers"], ["bench", "models"], ["bench", "tradeoff"],
-                 ["bench", "learning"], ["sweep"], ["demo"]):
+                 ["bench", "learning"], ["export"], ["sweep"], ["demo"]):
         with pytest.raises(SystemExit):
             parser.parse_args([*argv, "--help"])
         assert "options:" in capsys.readouterr().out
@@ -171,3 +181,10 @@ def test_every_documented_command_line_parses(capsys):
         except SystemExit:
             failed.append(f"{where}: {line}: {capsys.readouterr().err.strip().splitlines()[-1]}")
     assert failed == []
+
+
+def test_a_parameter_without_default_is_a_required_option(capsys):
+    assert run(["w", "--path", "p", "--n", "2"], {"w": with_required}) == ("p", 2)
+    with pytest.raises(SystemExit):
+        run(["w"], {"w": with_required})
+    assert "the following arguments are required: --path" in capsys.readouterr().err

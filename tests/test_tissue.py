@@ -106,3 +106,10 @@ def test_fit_and_test_through_the_cli_on_tiny_tissue(tiny, tmp_path, model):
     assert "rollout_mse_never" in metrics and "m10_mse" in metrics
     if model == "ggns":
         assert "rollout_mse_k1" in metrics
+        # the same rollout as ParaView files: truth, the model, the point clouds
+        main(["export", "--checkpoint", str(checkpoint), "--dataset", "tissue_tiny", "--data-dir", str(data_dir), "--split", "test",
+              "--schedule", "every:2", "--output", str(tmp_path / "export")])
+        pvds = sorted(p.name for p in (tmp_path / "export").glob("*.pvd"))
+        assert pvds == ["GGNS_every_2.pvd", "points.pvd", "truth.pvd"]
+        assert len(list((tmp_path / "export" / "truth").glob("*.vtu"))) == 12
+        assert len(list((tmp_path / "export" / "points").glob("*.vtu"))) == 6  # steps 0, 2, .., 10

@@ -8,6 +8,7 @@ import torch
 from matplotlib.figure import Figure
 
 from ggns.trajectory import Trajectory
+from ggns.geometry import box_tet_mesh
 from ggns.viz import figure_to_image, plot_trajectories, rollout_figure, save_figure
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -90,13 +91,23 @@ def test_rollout_figure_shape_mismatch():
         rollout_figure(cells, true, {"ok": true, "few nodes": true[:, :3]})
 
 
-def test_rollout_figure_rejects_3d():
-    _, cells, true = square()
-    true3 = np.concatenate([true, np.zeros_like(true[..., :1])], axis=-1)
-    with pytest.raises(ValueError, match="2D"):
-        rollout_figure(cells, true3, {"p": true3})
-    with pytest.raises(ValueError, match="2D"):
-        rollout_figure(cells, true, {"p": true3})
+def test_rollout_figure_3d_views_and_dimension_checks():
+    """Tetrahedral meshes: one row per (prediction, view), one column per frame; 2D and 3D arrays
+    cannot be mixed."""
+    positions, cells = box_tet_mesh((0, 0, 0), (1, 1, 0.5), (2, 2, 1))
+    true = np.stack([positions + [0.0, 0.0, 0.05 * t] for t in range(T)])
+    points = [positions[:5] + 0.01 if t % 2 == 0 else None for t in range(T)]
+    collider = true[:, :1] + [0.0, 0.0, 0.1]
+    fig = rollout_figure(cells, true, {"a": true, "b": true + 0.02}, points=points, collider=collider, num_frames=3,
+                         views=((30, -60), (90, -90), (0, 0)))
+    assert len(fig.axes) == 2 * 3 * 3 and fig.axes[0].name == "3d"
+    assert figure_to_image(fig).shape[2] == 3
+    _, cells2, true2 = square()
+    true3 = np.concatenate([true2, np.zeros_like(true2[..., :1])], axis=-1)
+    with pytest.raises(ValueError, match=r"\[T, N, 2\]"):
+        rollout_figure(cells2, true2, {"p": true3})
+    with pytest.raises(ValueError, match="views"):
+        rollout_figure(cells, true, {"a": true}, views=())
 
 
 def test_rollout_figure_frames_out_of_range():

@@ -11,7 +11,8 @@ mapping, chosen so the options read like a Unix command line:
 - a sequence (`tuple[str, ...]`, `list[int]`, ...) takes comma-separated values and may be
   repeated (`--split train --split val` == `--split train,val`);
 - `dict[str, str]` is a repeatable `--name KEY=VALUE`;
-- `*args: str` collects the positional words (`key=value` overrides).
+- `*args: str` collects the positional words (`key=value` overrides);
+- a parameter without a default is a required option (int, float, str or Literal).
 
 A nested mapping of commands gives sub-commands (`bench sim`, `bench models`). Parameters without
 a docstring entry are an error when the parser is built (so a command cannot grow an undocumented
@@ -116,13 +117,16 @@ def add_command(parser: argparse.ArgumentParser, function: Command) -> argparse.
         if parameter.kind is inspect.Parameter.VAR_POSITIONAL:
             parser.add_argument("_positional", nargs="*", metavar=parameter.name.upper(), help=help_text)
             continue
-        if parameter.kind is inspect.Parameter.VAR_KEYWORD or parameter.default is inspect.Parameter.empty:
-            raise TypeError(f"{where}: every option needs a default (or use *args for positional words)")
-        default = parameter.default
+        if parameter.kind is inspect.Parameter.VAR_KEYWORD:
+            raise TypeError(f"{where}: **kwargs cannot become options")
+        required = parameter.default is inspect.Parameter.empty
+        default = None if required else parameter.default
         flag = option_name(parameter.name)
         kind = _strip_optional(annotation)
         origin = typing.get_origin(kind)
         shown = f" (default: {default})" if default not in (None, False, "", ()) else ""
+        if required and (kind is bool or typing.get_origin(kind) is not None and typing.get_origin(kind) is not typing.Literal):
+            raise TypeError(f"{where}: only int, float, str and Literal options can be required (give it a default)")
         if kind is bool:
             if default:
                 parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=True, help=help_text)
@@ -137,6 +141,9 @@ def add_command(parser: argparse.ArgumentParser, function: Command) -> argparse.
             shown = f" (default: {','.join(map(str, default))})" if default else ""
             parser.add_argument(flag, action=_AppendSplit, convert=convert, choices_=choices, default=None,
                                 help=help_text + " (comma-separated or repeated)" + shown)
+        elif required:
+            convert, choices = _converter(kind, where)
+            parser.add_argument(flag, type=convert, choices=choices, required=True, help=help_text + " (required)")
         else:
             convert, choices = _converter(kind, where)
             parser.add_argument(flag, type=convert, choices=choices, default=default, help=help_text + shown)

@@ -9,6 +9,7 @@ runs when it runs, so building the parser (or `--help`) loads neither torch nor 
 """
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Literal
@@ -64,7 +65,7 @@ def geometry(dataset: str = "plate_small", split: Split = "train", trajectories:
     from .graphs.scale import geometry_report
 
 
-    data = SimulationDataModule(dataset, generate_missing=False)
+    data = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False)
     table, ok = geometry_report(data.trajectories(split)[:trajectories], f"{dataset} {data.path(split)}", targets,
                                 stride)
     print(table)
@@ -175,6 +176,42 @@ def bench_learning(*overrides: str, config: str = "plate_ggns", minutes: float |
     return write_report(spec) if report_only else run_learning(spec, variant)
 
 
+def export(checkpoint: str, dataset: str = "plate_small", data_dir: str | None = None,
+           split: Literal["train", "val", "test"] = "test", trajectory: int = 0, schedule: str = "every:1",
+           output: str = "lightning_logs/export") -> list[Path]:
+    """Write one trajectory's ground truth, a checkpoint's rollout and the point clouds as ParaView files.
+
+    Args:
+        checkpoint: the model checkpoint (.ckpt) whose rollout is written
+        dataset: data preset whose split holds the trajectory
+        data_dir: folder of the split files (default: the preset's output)
+        split: the split
+        trajectory: index of the trajectory in the split
+        schedule: point-cloud schedule of the rollout (a model without point clouds uses never)
+        output: folder of the .pvd collections (truth, the model, points) and their .vtu steps
+    """
+    from .batch import TrajectoryBatch
+    from .data.module import SimulationDataModule
+    from .evaluation.pictures import rollout_series
+    from .evaluation.schedules import parse_schedule
+    from .models.simulators import load_simulator
+    from .paraview import write_rollout
+
+    model = load_simulator(checkpoint, map_location="cpu")
+    trajectories = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False).trajectories(split)
+    if not 0 <= trajectory < len(trajectories):
+        raise ValueError(f"--trajectory {trajectory} is not among the {len(trajectories)} {split} trajectories")
+    chosen = trajectories[trajectory]
+    preds, points = rollout_series(TrajectoryBatch.from_trajectories([chosen]), {type(model).__name__: model},
+                                   parse_schedule(schedule))
+    names = {re.sub(r"[^\w.+-]+", "_", label).strip("_"): x for label, x in preds.items()}
+    paths = write_rollout(output, chosen.cells, chosen.positions, names, points,
+                          frame_dt=float(chosen.params.get("frame_dt", 1.0)))
+    for path in paths:
+        print(path)
+    return paths
+
+
 def sweep(*overrides: str, config: str = "plate", task: int | None = None, slurm: str | None = None,
           aggregate_only: bool = False) -> None:
     """Multi-seed sweep of model configs (fit + test per run, resumable), then baselines and summary.
@@ -223,6 +260,7 @@ COMMANDS = {
     "geometry": geometry,
     "bench": {"sim": bench_sim, "solvers": bench_solvers, "models": bench_models, "tradeoff": bench_tradeoff,
               "learning": bench_learning},
+    "export": export,
     "sweep": sweep,
     "demo": demo,
 }

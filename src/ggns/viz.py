@@ -1,7 +1,7 @@
-"""Pictures of trajectories and rollouts: mesh, collider and point cloud at a few steps (2D scenes).
+"""Pictures of trajectories and rollouts: mesh, collider and point cloud at a few steps.
 
-`plot_trajectories` draws generated data, `rollout_figure` compares predicted rollouts with the
-ground truth; `save_figure` writes a figure to a PNG and `figure_to_image` renders it to an RGB
+`plot_trajectories` draws generated 2D data, `rollout_figure` compares predicted rollouts with the
+ground truth (2D: the triangle meshes; 3D: the boundary surfaces' edges in several views); `save_figure` writes a figure to a PNG and `figure_to_image` renders it to an RGB
 array (e.g. for `SummaryWriter.add_image(tag, img, step, dataformats="HWC")`).
 """
 from __future__ import annotations
@@ -18,7 +18,9 @@ import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
-from .geometry import check_cells  # noqa: E402
+from mpl_toolkits.mplot3d.art3d import Line3DCollection  # noqa: E402
+
+from .geometry import boundary_facets, check_cells  # noqa: E402
 from .trajectory import Trajectory  # noqa: E402
 
 SAVE_DPI = 110
@@ -101,32 +103,34 @@ def rollout_figure(
     collider_faces=None,
     num_frames: int = 4,
     title: str | None = None,
+    views: Sequence[tuple[float, float]] = ((30.0, -60.0), (90.0, -90.0)),
 ) -> Figure:
-    """Predicted rollouts against the ground truth for a 2D scene.
+    """Predicted rollouts against the ground truth for a 2D or 3D scene (d = 2 or 3).
 
-    cells [C, 3] triangles; true [T, N, 2] ground-truth positions; preds {label: [T, N, 2]};
-    frames: steps to draw (default `num_frames` evenly spaced over 0..T-1); points: optional
-    list of T point clouds [P_t, 2] (None / empty = none that step); collider [T, K, 2] with
-    collider_faces [F, 2] segments. One row per label, one column per frame. Returns the figure
-    (not closed: pass it to `save_figure` or `figure_to_image`).
+    cells [C, d+1] triangles / tetrahedra; true [T, N, d] ground-truth positions; preds {label:
+    [T, N, d]}; frames: steps to draw (default `num_frames` evenly spaced over 0..T-1); points:
+    optional list of T point clouds [P_t, d] (None / empty = none that step); collider [T, K, d]
+    with collider_faces [F, d] (2D: segments of a closed polyline; 3D: triangles, or none for
+    collider nodes drawn as markers). 2D: one row per label; 3D: one row per label and view
+    (elevation, azimuth in degrees, matplotlib's), drawing the boundary surfaces' edges. One column
+    per frame. Returns the figure (not closed: pass it to `save_figure` or `figure_to_image`).
     """
     cells = _to_numpy(cells).astype(np.int64)
     true = _to_numpy(true).astype(np.float64)
-    if true.ndim != 3 or true.shape[-1] != 2:
-        raise ValueError(f"rollout_figure draws 2D scenes only: true must be [T, N, 2], got {true.shape}")
+    if true.ndim != 3 or true.shape[-1] not in (2, 3):
+        raise ValueError(f"rollout_figure draws 2D and 3D scenes: true must be [T, N, 2|3], got {true.shape}")
+    dim = true.shape[-1]
     num_steps, num_nodes = true.shape[:2]
     if num_steps < 1:
         raise ValueError("true has no steps")
-    cells = check_cells(cells, num_nodes)
+    cells = check_cells(cells, num_nodes, corners=dim + 1)
     if not preds:
         raise ValueError("no predictions to plot")
     pred_arrays: dict[str, np.ndarray] = {}
     for label, pred in preds.items():
         pred = _to_numpy(pred).astype(np.float64)
-        if pred.ndim != 3 or pred.shape[-1] != 2:
-            raise ValueError(
-                f"rollout_figure draws 2D scenes only: prediction {label!r} must be [T, N, 2], got {pred.shape}"
-            )
+        if pred.ndim != 3 or pred.shape[-1] != dim:
+            raise ValueError(f"prediction {label!r} must be [T, N, {dim}] like the ground truth, got {pred.shape}")
         if pred.shape != true.shape:
             raise ValueError(f"prediction {label!r} has shape {pred.shape}, ground truth has {true.shape}")
         pred_arrays[str(label)] = pred
@@ -155,10 +159,16 @@ def rollout_figure(
             if p.size == 0:
                 clouds.append(None)
                 continue
-            if p.ndim != 2 or p.shape[1] != 2:
-                raise ValueError(f"points[{t}] must be [P, 2], got {p.shape}")
+            if p.ndim != 2 or p.shape[1] != dim:
+                raise ValueError(f"points[{t}] must be [P, {dim}], got {p.shape}")
             clouds.append(p)
 
+    if dim == 3:
+        if collider is not None:
+            collider = _to_numpy(collider).astype(np.float64)
+            if collider.ndim != 3 or collider.shape[-1] != 3 or collider.shape[0] != num_steps:
+                raise ValueError(f"collider must be [T={num_steps}, K, 3], got {collider.shape}")
+        return _rollout_figure_3d(cells, true, pred_arrays, frames, clouds, collider, views, title)
     loops = None
     if collider is not None:
         collider = _to_numpy(collider).astype(np.float64)
@@ -196,4 +206,53 @@ def rollout_figure(
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout(rect=(0, 0.6 / (3 * rows + 0.6) + 0.02, 1, 0.95 if title else 1))
+    return fig
+
+
+def _surface_segments(positions: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    return np.stack([positions[edges[:, 0]], positions[edges[:, 1]]], axis=1)
+
+
+def _rollout_figure_3d(cells, true, preds: dict, frames: list[int], clouds, collider, views, title) -> Figure:
+    """`rollout_figure` for tetrahedral meshes: the edges of the boundary surface, truth in grey and
+    each prediction in its colour, point clouds in green, collider nodes as black markers; one row
+    per (label, view), one column per frame."""
+    if not views:
+        raise ValueError("views must name at least one (elevation, azimuth)")
+    facets = boundary_facets(cells)
+    edges = np.unique(np.sort(np.concatenate([facets[:, [0, 1]], facets[:, [1, 2]], facets[:, [0, 2]]]), axis=1), axis=0)
+    every = np.concatenate([true.reshape(-1, 3), *(p.reshape(-1, 3) for p in preds.values())])
+    lo, hi = every.min(axis=0), every.max(axis=0)
+    centre, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1e-6) * 1.05
+    rows, cols = len(preds) * len(views), len(frames)
+    fig = plt.figure(figsize=(3 * cols, 3 * rows + 0.6))
+    index = 0
+    for color, (label, pred) in zip(cycle(_PRED_COLORS), preds.items()):
+        for elevation, azimuth in views:
+            for t in frames:
+                index += 1
+                ax = fig.add_subplot(rows, cols, index, projection="3d")
+                ax.add_collection3d(Line3DCollection(_surface_segments(true[t], edges), colors="0.35", linewidths=0.4,
+                                                     alpha=0.7))
+                ax.add_collection3d(Line3DCollection(_surface_segments(pred[t], edges), colors=color, linewidths=0.6))
+                if clouds is not None and clouds[t] is not None:
+                    ax.scatter(*clouds[t].T, s=1.0, color="tab:green", depthshade=False)
+                if collider is not None:
+                    ax.scatter(*collider[t].T, s=25, color="black", marker="v", depthshade=False)
+                ax.set(xlim=(centre[0] - half, centre[0] + half), ylim=(centre[1] - half, centre[1] + half),
+                       zlim=(centre[2] - half, centre[2] + half), xticks=[], yticks=[], zticks=[])
+                ax.set_box_aspect((1, 1, 1))
+                ax.view_init(elev=elevation, azim=azimuth)
+                ax.set_title(f"{label}  t={t}  view {elevation:g}/{azimuth:g}", fontsize=8)
+    handles = [Line2D([], [], color="0.35", lw=1.0, label="ground truth")]
+    handles += [Line2D([], [], color=c, lw=1.0, label=f"prediction: {label}") for c, label in zip(cycle(_PRED_COLORS), preds)]
+    if collider is not None:
+        handles.append(Line2D([], [], color="black", marker="v", ls="", label="collider"))
+    if clouds is not None:
+        handles.append(Line2D([], [], color="tab:green", marker=".", ls="", label="point cloud"))
+    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 4), fontsize=8, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.6 / (3 * rows + 0.6) + 0.02, top=0.93 if title else 0.98,
+                        wspace=0.02, hspace=0.15)
     return fig

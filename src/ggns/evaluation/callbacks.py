@@ -126,8 +126,8 @@ class TestedCheckpoint(pl.Callback):
 
 class RolloutPictures(pl.Callback):
     """Adds a picture of ground truth vs. rollout (point clouds overlaid at the steps that used
-    them) of validation trajectory `trajectory` to TensorBoard as `rollout/<split>_<index>`.
-    2D scenes only; other loggers than TensorBoard get nothing (with one warning)."""
+    them) of validation trajectory `trajectory` to TensorBoard as `rollout/<split>_<index>` (3D
+    scenes: two views per model); other loggers than TensorBoard get nothing (with one warning)."""
 
     def __init__(self, schedule: str = "every:5", trajectory: int = 0, num_frames: int = 4, split: str = "val"):
         self.schedule = parse_schedule(schedule)
@@ -151,8 +151,6 @@ class RolloutPictures(pl.Callback):
             self._cache["batch"] = TrajectoryBatch.from_trajectories([trajs[self.trajectory]])
             self._cache["faces"] = trajs[self.trajectory].collider_faces
         batch = self._cache["batch"].to(pl_module.device)
-        if batch.positions.shape[-1] != 2:
-            return
         fig = rollout_picture(batch, self._cache["faces"], {type(pl_module).__name__: pl_module}, self.schedule,
                               num_frames=self.num_frames, title=f"epoch {trainer.current_epoch}")
         logger.experiment.add_image(f"rollout/{self.split}_{self.trajectory}", figure_to_image(fig),

@@ -18,7 +18,7 @@ from ..scenes import SCENES
 from ..sensors.camera import DepthSensor, SensorConfig
 from ..sim.fem import ElasticBody
 from ..sim.material import Material
-from ..sim.solver import Simulator, SolverConfig
+from ..sim.solver import SimulationError, Simulator, SolverConfig
 from .timing import median_ms, time_trajectories
 
 
@@ -116,3 +116,83 @@ def bench_linear_solvers(nodes: tuple[int, int, int] = (10, 6, 6), frames: int =
         result["max position difference, m"] = max((x - ref).abs().max().item() for x in final.values())
         print(f"  max position difference between solvers: {result['max position difference, m']:.2e} m")
     return result
+
+
+def min_volume_ratio(positions: np.ndarray, rest: np.ndarray, cells: np.ndarray) -> float:
+    """The smallest det F (deformed over rest signed volume) of any cell at any frame of positions
+    [T, N, d]: <= 0 once an element is flat or inverted."""
+    def signed(x):
+        corners = x[..., cells, :]
+        return np.linalg.det(corners[..., 1:, :] - corners[..., :1, :])
+    return float((signed(positions) / signed(rest)).min())
+
+
+def bench_tangents(preset: str = "tissue_tiny", steps: int = 100, seeds: int = 3,
+                   tangents: tuple[str, ...] = ("warped", "exact"), combinations: tuple[int, ...] | None = None,
+                   first_seed: int = 1234) -> dict:
+    """Newton's tangents (`SolverConfig.tangent`) on a preset's scene, one torch thread: for every
+    tangent, combination (default: all of the preset's) and seed first_seed .. first_seed + seeds - 1,
+    one trajectory of `steps` frames made as generation makes it (simulate + observe), with its
+    ms/frame, Newton iterations per frame (mean over frames 1.., max) and smallest det F of any
+    element (`min_volume_ratio`: <= 0 means inverted) or the failure; and, per
+    trajectory that the first tangent finished too, the largest position difference from it.
+    Prints one line per trajectory and a summary per tangent and material; returns both."""
+    base = load_config(preset, [f"scene.num_steps={steps}"])
+    scene_module = SCENES[base["scene"]["name"]]
+    sensor = DepthSensor(SensorConfig.from_dict(base["sensor"]))
+    combos = range(scene_module.num_combinations(base["scene"])) if combinations is None else combinations
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    rows, finals = [], {}
+    print(f"bench tangents: preset {preset!r}, {steps} frames per trajectory, 1 torch thread")
+    try:
+        for tangent in tangents:
+            config = dict(base, solver=dict(base["solver"], tangent=tangent))
+            for combination in combos:
+                for seed in range(first_seed, first_seed + seeds):
+                    row = {"tangent": tangent, "combination": combination, "seed": seed}
+                    start = time.perf_counter()
+                    try:
+                        traj = scene_module.make_trajectory(config, combination, seed, sensor)
+                    except SimulationError as error:
+                        row["failure"] = str(error)
+                        print(f"  {tangent:9s} combination {combination} seed {seed}: FAIL {error}")
+                        rows.append(row)
+                        continue
+                    iterations = traj.diagnostics["newton_iterations"][1:]
+                    row.update({"poissons_ratio": traj.poissons_ratio,
+                                "ms/frame": 1e3 * (time.perf_counter() - start) / len(traj.positions),
+                                "newton mean": float(iterations.mean()), "newton max": int(iterations.max()),
+                                "min det F": min_volume_ratio(traj.positions, traj.rest_positions, traj.cells)})
+                    finals[tangent, combination, seed] = traj.positions
+                    reference = finals.get((tangents[0], combination, seed))
+                    if reference is not None:
+                        row["max position difference, m"] = float(np.abs(traj.positions - reference).max())
+                    print(f"  {tangent:9s} combination {combination} seed {seed}: nu {row['poissons_ratio']:5.2f}  "
+                          f"{row['ms/frame']:6.1f} ms/frame  Newton mean {row['newton mean']:5.2f} max "
+                          f"{row['newton max']:3d}  min det F {row['min det F']:6.2f}" + (f"  vs {tangents[0]}: {row['max position difference, m']:.1e} m"
+                                                      if reference is not None and tangent != tangents[0] else ""))
+                    rows.append(row)
+    finally:
+        torch.set_num_threads(threads)
+    summary = []
+    for tangent in tangents:
+        done = [r for r in rows if r["tangent"] == tangent and "failure" not in r]
+        for nu in sorted({r["poissons_ratio"] for r in rows if "poissons_ratio" in r}):
+            mine = [r for r in done if r["poissons_ratio"] == nu]
+            failed = [r for r in rows if r["tangent"] == tangent and "failure" in r
+                      and any(o.get("poissons_ratio") == nu for o in rows if o["combination"] == r["combination"])]
+            summary.append({
+                "tangent": tangent, "poissons_ratio": nu, "finished": len(mine), "failed": len(failed),
+                "ms/frame (median)": statistics.median(r["ms/frame"] for r in mine) if mine else float("nan"),
+                "newton mean": float(np.mean([r["newton mean"] for r in mine])) if mine else float("nan"),
+                "newton max": max((r["newton max"] for r in mine), default=0),
+                "min det F": min((r["min det F"] for r in mine), default=float("nan")),
+                "max position difference, m": max((r.get("max position difference, m", 0.0) for r in mine), default=0.0),
+            })
+    print("  summary (per tangent and Poisson's ratio):")
+    for row in summary:
+        print(f"  {row['tangent']:9s} nu {row['poissons_ratio']:5.2f}  finished {row['finished']}  failed "
+              f"{row['failed']}  ms/frame {row['ms/frame (median)']:6.1f}  Newton mean {row['newton mean']:5.2f}  "
+              f"max {row['newton max']:3d}  min det F {row['min det F']:6.2f}  max |x - x_{tangents[0]}| {row['max position difference, m']:.1e} m")
+    return {"rows": rows, "summary": summary}

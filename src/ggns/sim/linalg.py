@@ -1,7 +1,7 @@
 """The two linear-algebra back ends of the Newton core: dense (torch Cholesky) and sparse (SuperLU).
 
-A back end owns the matrix format of every Hessian-like matrix the solver builds (the warped
-stiffness, diagonal mass and damping terms, contact blocks): `dense` holds [N d, N d] torch tensors,
+A back end owns the matrix format of every Hessian-like matrix the solver builds (the element
+tangent, warped or exact, both with the element-block pattern; diagonal mass and damping terms, contact blocks): `dense` holds [N d, N d] torch tensors,
 `sparse` holds the values [nnz] of one fixed sparsity pattern (element blocks + node blocks,
 row-major), so sums and scalings of matrices are plain tensor arithmetic in both. `solve` restricts
 a matrix to the free degrees of freedom (the Dirichlet dofs are removed, as in the dense path),
@@ -36,9 +36,13 @@ class DenseLinearAlgebra:
 
     def stiffness(self, R: torch.Tensor) -> torch.Tensor:
         """Assembled warped stiffness R K0 R^T for element rotations R [C, d, d]."""
+        return self.assemble(self.body.warped_stiffness(R))
+
+    def assemble(self, blocks: torch.Tensor) -> torch.Tensor:
+        """The matrix of element blocks flattened to match the body's (hess_rows, hess_cols)."""
         nd = self.size
         K = torch.zeros(nd * nd, dtype=torch.float64)
-        K.index_add_(0, self.body.hess_rows * nd + self.body.hess_cols, self.body.warped_stiffness(R))
+        K.index_add_(0, self.body.hess_rows * nd + self.body.hess_cols, blocks)
         return K.view(nd, nd)
 
     def diag(self, values: torch.Tensor) -> torch.Tensor:
@@ -89,8 +93,12 @@ class SparseLinearAlgebra:
         self.indptr = np.concatenate([[0], np.cumsum(np.bincount(rows.numpy(), minlength=self.num_free))]).astype(np.int32)
 
     def stiffness(self, R: torch.Tensor) -> torch.Tensor:
+        return self.assemble(self.body.warped_stiffness(R))
+
+    def assemble(self, blocks: torch.Tensor) -> torch.Tensor:
+        """Element blocks (flattened as the body's hess_rows, hess_cols) as pattern values."""
         K = torch.zeros(self.nnz, dtype=torch.float64)
-        K.index_add_(0, self.element_positions, self.body.warped_stiffness(R))
+        K.index_add_(0, self.element_positions, blocks)
         return K
 
     def diag(self, values: torch.Tensor) -> torch.Tensor:

@@ -6,8 +6,12 @@ One time step minimizes the incremental potential over the free degrees of freed
 x_pred = x_n + h v_n, D = alpha M + beta K(x_n) (Rayleigh damping, stiffness lagged to the
 step's start), whose stationary point is backward Euler. C(x) is the augmented-Lagrangian
 term of the non-penetration constraints phi_i(x) >= 0 (signed distance of node i to each
-collider at the step's end). Newton uses the SPD warped stiffness and an Armijo line search
-on Phi, so every step decreases the potential: unconditionally stable, no oscillation.
+collider at the step's end). Newton uses an elastic tangent chosen by `SolverConfig.tangent`
+(fem.py): the positive semi-definite warped stiffness, or the exact Hessian (falling back to its
+positive semi-definite projection in an iteration where the Newton matrix is not positive
+definite), and an Armijo line search on Phi, so with a positive definite matrix every step
+decreases the potential: unconditionally stable, no oscillation. The damping matrix D is the
+warped stiffness whatever the tangent (it is part of the model, not of the solver).
 Multiplier updates repeat until no node is inside a collider by more than the tolerance.
 Contact is node-to-surface and frictionless.
 
@@ -22,7 +26,7 @@ from dataclasses import dataclass
 import torch
 
 from .contact import signed_distance
-from .fem import ElasticBody
+from .fem import TANGENTS, ElasticBody
 from .linalg import LINEAR_SOLVERS, SPARSE_MIN_FREE_DOFS, linear_algebra
 
 
@@ -44,6 +48,11 @@ class SolverConfig:
     # "dense" (torch Cholesky), "sparse" (scipy SuperLU) or "auto": sparse from
     # SPARSE_MIN_FREE_DOFS free unknowns on (docs/simulator.md, "Linear solver")
     linear_solver: str = "auto"
+    # Newton's elastic tangent (fem.py, docs/simulator.md "Tangent"): "warped" (R K0 R^T, the
+    # rotation's derivative omitted), "exact" (the exact Hessian; an iteration whose Newton matrix
+    # is then not positive definite retries with "projected") or "projected" (the exact Hessian
+    # clamped to positive semi-definite)
+    tangent: str = "warped"
 
     def __post_init__(self) -> None:
         if not self.dt > 0:
@@ -54,6 +63,8 @@ class SolverConfig:
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(f"linear_solver must be one of {LINEAR_SOLVERS} (\"auto\": sparse from "
                              f"{SPARSE_MIN_FREE_DOFS} free unknowns on), got {self.linear_solver!r}")
+        if self.tangent not in TANGENTS:
+            raise ValueError(f"tangent must be one of {TANGENTS}, got {self.tangent!r}")
 
 
 @dataclass
@@ -97,6 +108,7 @@ class Simulator:
         extent = (body.X.amax(0) - body.X.amin(0)).norm().item()
         self.line_search_threshold = 1e-6 * extent  # smaller Newton steps are taken in full
         self.multipliers: list[torch.Tensor] = []  # per collider [N], warm-started over steps
+        self.projected_fallbacks = 0  # Newton iterations of tangent "exact" that took "projected"
         self.steps_taken = 0
 
     # ---- assembly -------------------------------------------------------------------
@@ -127,12 +139,20 @@ class Simulator:
 
     # ---- Newton core ------------------------------------------------------------------
     def _minimize(self, x: torch.Tensor, potential, gradient_hessian, what: str) -> tuple[torch.Tensor, int]:
-        """Minimize `potential` over the free dofs from x by Newton with Armijo line search."""
-        free = self.free
+        """Minimize `potential` over the free dofs from x by Newton with Armijo line search.
+        gradient_hessian(x, tangent) -> gradient [N, d], Newton matrix."""
+        free, tangent = self.free, self.config.tangent
         for it in range(1, self.config.max_newton_iterations + 1):
-            g, H = gradient_hessian(x)
+            g, H = gradient_hessian(x, tangent)
             g = g.reshape(-1)[free]
             dx_free = self.linalg.solve(H, g)
+            if dx_free is None and tangent == "exact":
+                # the exact Hessian is indefinite here (compressed and twisted elements outweigh
+                # the inertia): this iteration takes its positive semi-definite projection
+                self.projected_fallbacks += 1
+                g, H = gradient_hessian(x, "projected")
+                g = g.reshape(-1)[free]
+                dx_free = self.linalg.solve(H, g)
             if dx_free is None:
                 raise SimulationError(f"{what}: Newton matrix not positive definite at iteration {it} "
                                       f"({self.linalg.name} solver; Dirichlet nodes missing?)")
@@ -191,12 +211,12 @@ class Simulator:
             value = value + body.energy(y) - (self.gravity_force * y).sum()
             return value + self._contact(y, colliders, False)[0]
 
-        def gradient_hessian(y):
-            ge, R = body.gradient(y)
+        def gradient_hessian(y, tangent):
+            ge, K = body.gradient_hessian(y, tangent)
             dn = (y - x).reshape(-1)
             g = M * (y - x_pred) / h**2 + ge - self.gravity_force + la.matvec(D, dn).view_as(y) / h
             _, gc, hc, _ = self._contact(y, colliders, True)
-            H = Hconst + la.stiffness(R)
+            H = Hconst + la.assemble(K)
             for blocks in hc:
                 H = la.add_node_blocks(H, blocks)
             return g + gc, H
@@ -233,9 +253,9 @@ class Simulator:
         def potential(y):
             return body.energy(y) - (f * y).sum()
 
-        def gradient_hessian(y):
-            g, R = body.gradient(y)
-            return g - f, self.linalg.stiffness(R)
+        def gradient_hessian(y, tangent):
+            g, K = body.gradient_hessian(y, tangent)
+            return g - f, self.linalg.assemble(K)
 
         return self._minimize(x0.to(torch.float64), potential, gradient_hessian, "static equilibrium")[0]
 

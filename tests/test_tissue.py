@@ -10,7 +10,7 @@ from ggns.__main__ import main
 from ggns.config import load_config
 from ggns.data.generate import generate
 from ggns.data.schema import read_trajectories
-from ggns.geometry import boundary_facets
+from ggns.geometry import boundary_facets, signed_volumes
 from ggns.scenes import tissue
 from ggns.sensors.camera import DepthSensor, PinholeCamera, SensorConfig
 
@@ -28,11 +28,11 @@ def tiny(tmp_path_factory):
 def test_mesh_fixed_layer_and_grasp_candidates():
     scene = load_config("tissue")["scene"]
     rest, cells, fixed = tissue.tissue_mesh(scene)
-    assert rest.shape == (360, 3) and cells.shape == (6 * 11 * 9 * 2, 4)
-    assert fixed.sum() == 120 and np.allclose(rest[fixed, 2], -0.6)
+    assert rest.shape == (360, 3) and cells.shape == (6 * 9 * 8 * 3, 4)
+    assert fixed.sum() == 90 and np.allclose(rest[fixed, 2], -0.6)
     candidates = tissue.grasp_candidates(scene, rest)
     assert len(candidates) == 19 == len(set(candidates.tolist()))
-    assert np.allclose(rest[candidates, 2], -0.464)
+    assert np.allclose(rest[candidates, 2], -0.3)
 
 
 def test_grasped_patch_follows_the_gripper_and_the_bottom_stays(tiny):
@@ -47,12 +47,33 @@ def test_grasped_patch_follows_the_gripper_and_the_bottom_stays(tiny):
         assert len(held) == traj.params["grasped_nodes"] == 5 and traj.fixed[held].all()
         np.testing.assert_allclose(traj.positions[:, held] - traj.rest_positions[held],
                                    np.broadcast_to((path - path[0])[:, None], (traj.num_steps, len(held), 3)), atol=1e-9)
-        assert np.linalg.norm(path[-1] - path[0]) > 0.02  # it moved
+        assert np.linalg.norm(path[-1] - path[0]) > 0.01  # it moved (11 steps of the first segment)
         bottom = np.isclose(traj.rest_positions[:, 2], -0.6)
         np.testing.assert_array_equal(traj.positions[:, bottom], np.broadcast_to(traj.rest_positions[bottom],
                                                                                  (traj.num_steps, bottom.sum(), 3)))
         free = ~traj.fixed
-        assert np.abs(traj.positions[:, free] - traj.rest_positions[free]).max() < 0.3  # bounded response
+        assert np.abs(traj.positions[:, free] - traj.rest_positions[free]).max() < 0.2  # bounded response
+        assert min_volume_ratio(traj) > 0.3  # no element inverted or crushed
+
+
+def min_volume_ratio(traj) -> float:
+    rest = signed_volumes(traj.rest_positions, traj.cells)
+    return min(float((signed_volumes(x, traj.cells) / rest).min()) for x in traj.positions)
+
+
+@pytest.mark.parametrize("nu", [-0.95, 0.499])
+def test_extreme_poissons_ratios_stay_bounded(nu):
+    """30 steps of the default path at nu = -0.95 and 0.499: finite, no inverted element, the motion
+    quasi-static (kinetic energy far below elastic), Newton converged in a few iterations."""
+    config = load_config("tissue_tiny", ["scene.num_steps=30"])
+    config["scene"]["materials"] = [{"poissons_ratio": nu, "youngs_modulus": 30000.0}]
+    sensor = DepthSensor(SensorConfig.from_dict(config["sensor"]))
+    traj = tissue.make_trajectory(config, 0, 7, sensor)
+    d = traj.diagnostics
+    assert all(np.isfinite(v).all() for v in d.values()) and np.isfinite(traj.positions).all()
+    assert min_volume_ratio(traj) > 0.2
+    assert d["elastic_energy"][-1] > 0 and d["kinetic_energy"].max() < 0.05 * d["elastic_energy"].max()
+    assert d["newton_iterations"].max() <= 10
 
 
 def test_points_lie_on_the_deformed_surface(tiny):
@@ -81,7 +102,7 @@ def test_a_known_occluder_hides_what_is_behind_it():
     seen = sensor.observe(rest, cells, None, None)
     hidden = sensor.observe(rest, cells, None, None, occluders=[occluder])
     assert (seen[:, 0] < -0.1).sum() > 50  # without it the camera sees that half
-    # rays reaching x < 0 on the top (z = -0.464) pass the plane z = 0 at x < 0: all blocked
+    # rays reaching x < 0 on the top (z = -0.3) pass the plane z = 0 at x < 0: all blocked
     assert (hidden[:, 0] < -1e-6).sum() == 0
     assert len(hidden) > 0.4 * len(seen)
     with pytest.raises(ValueError, match="occluder 0"):

@@ -65,7 +65,7 @@ def geometry(dataset: str = "plate_small", split: Split = "train", trajectories:
     from .graphs.scale import geometry_report
 
 
-    data = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False)
+    data = SimulationDataModule(dataset, generate_missing=False)
     table, ok = geometry_report(data.trajectories(split)[:trajectories], f"{dataset} {data.path(split)}", targets,
                                 stride)
     print(table)

@@ -40,7 +40,7 @@ class SolverConfig:
 
     dt: float
     gravity: tuple[float, ...] | None = None  # m/s^2, None: no gravity
-    newton_tolerance: float = 1e-9  # max |dx| of the last Newton update, m
+    newton_tolerance: float = 1e-9  # max |dx| of the last full Newton step, m
     max_newton_iterations: int = 100
     contact_tolerance: float = 1e-4  # max penetration at the end of a step, m
     contact_stiffness: float = 100.0  # penalty per node, relative to its own mass+stiffness diagonal
@@ -170,11 +170,14 @@ class Simulator:
             x = x + alpha * dx
             if not torch.isfinite(x).all():
                 raise SimulationError(f"{what}: non-finite positions at Newton iteration {it}")
-            if alpha * dx_free.abs().max() < self.config.newton_tolerance:
+            # converged when the full Newton step is below the tolerance: a step the line search
+            # shrank (alpha < 1) can be tiny at a kink of the energy (an inverted element) far from
+            # a stationary point, so a small accepted step alone does not end the iteration
+            if dx_free.abs().max() < self.config.newton_tolerance:
                 return x, it
         raise SimulationError(
             f"{what}: Newton did not converge in {self.config.max_newton_iterations} iterations "
-            f"(last update {alpha * dx_free.abs().max():.3e} m)"
+            f"(last Newton step {dx_free.abs().max():.3e} m, taken with line-search factor {alpha:.3g})"
         )
 
     # ---- public API -------------------------------------------------------------------

@@ -7,6 +7,7 @@ import platform
 import statistics
 import tempfile
 import time
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -129,15 +130,16 @@ def min_volume_ratio(positions: np.ndarray, rest: np.ndarray, cells: np.ndarray)
 
 def bench_tangents(preset: str = "tissue_tiny", steps: int = 100, seeds: int = 3,
                    tangents: tuple[str, ...] = ("warped", "exact"), combinations: tuple[int, ...] | None = None,
-                   first_seed: int = 1234) -> dict:
+                   first_seed: int = 1234, overrides: Sequence[str] = ()) -> dict:
     """Newton's tangents (`SolverConfig.tangent`) on a preset's scene, one torch thread: for every
     tangent, combination (default: all of the preset's) and seed first_seed .. first_seed + seeds - 1,
     one trajectory of `steps` frames made as generation makes it (simulate + observe), with its
     ms/frame, Newton iterations per frame (mean over frames 1.., max) and smallest det F of any
     element (`min_volume_ratio`: <= 0 means inverted) or the failure; and, per
     trajectory that the first tangent finished too, the largest position difference from it.
-    Prints one line per trajectory and a summary per tangent and material; returns both."""
-    base = load_config(preset, [f"scene.num_steps={steps}"])
+    Prints one line per trajectory and a summary per tangent and material; returns both.
+    `overrides`: key=value overrides of the preset (e.g. another block or gripper path)."""
+    base = load_config(preset, [f"scene.num_steps={steps}", *overrides])
     scene_module = SCENES[base["scene"]["name"]]
     sensor = DepthSensor(SensorConfig.from_dict(base["sensor"]))
     combos = range(scene_module.num_combinations(base["scene"])) if combinations is None else combinations

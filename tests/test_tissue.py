@@ -124,7 +124,7 @@ def test_fit_and_test_through_the_cli_on_tiny_tissue(tiny, tmp_path, model):
     assert checkpoint.is_file()
     main(["test", *common[:-4], "--trainer.logger.init_args.version", "test", "--ckpt_path", str(checkpoint)])
     metrics = (tmp_path / f"tissue_{model}" / "test" / "test_metrics.md").read_text()
-    assert "rollout_mse_never" in metrics and "m10_mse" in metrics
+    assert "rollout_mse_never" in metrics and "m10_mse" in metrics and "rollout_iou_never" in metrics  # 3D volume IoU
     if model == "ggns":
         assert "rollout_mse_k1" in metrics
         # the same rollout as ParaView files: truth, the model, the point clouds

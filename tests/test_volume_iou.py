@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from ggns.evaluation import tet_mesh_iou
+from ggns.evaluation.metrics import rollout_volume_iou
 from ggns.evaluation.volume import surface_self_intersects
 from ggns.geometry import boundary_facets, box_tet_mesh, signed_volumes
 
@@ -122,3 +123,14 @@ def test_bad_input_is_rejected_with_the_problem_named():
     flat = CUBE * [1.0, 1.0, 0.0]  # every tetrahedron squashed flat
     with pytest.raises(ValueError, match="zero volume"):
         tet_mesh_iou(flat, flat, CUBE_CELLS)
+
+
+def test_rollout_volume_iou_averages_every_stride_th_state():
+    positions, cells = box_tet_mesh((0, 0, 0), (1, 1, 1), 1)
+    true = np.stack([positions] * 5)
+    pred = true.copy()
+    pred[2] += [0.5, 0.0, 0.0]  # IoU 1/3 at state 2, 1 elsewhere
+    assert rollout_volume_iou(pred, true, cells, stride=2) == pytest.approx((1 / 3 + 1) / 2, abs=1e-9)  # states 2, 4
+    assert rollout_volume_iou(pred[None], true[None], cells, stride=10) == pytest.approx(1.0)  # the last state
+    with pytest.raises(ValueError, match=r"\[T, N, 3\]"):
+        rollout_volume_iou(pred[..., :2], true[..., :2], cells)

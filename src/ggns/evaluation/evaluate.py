@@ -5,7 +5,8 @@ rollout callbacks and the benchmarks alike.
 accumulates them over batches and reports the mean (and std over trajectories). Names:
     one_step_mse        teacher-forced next-step error (`one_step_predictions`)
     rollout_mse_<s>     full-rollout error from S_0 under point-cloud schedule s
-    rollout_iou_<s>     mean IoU over the predicted states of that rollout (2D only)
+    rollout_iou_<s>     mean IoU over the predicted states of that rollout (2D: areas, every state;
+                        3D: volumes of the tetrahedral meshes, every 10th state, `rollout_volume_iou`)
     m10_mse             the m+10-step error (`metrics.m_plus_10_mse`), averaged over m (every m, or
                         every `m_plus_10_stride`-th for a cheaper estimate during training)
 with <s> = k1, k2, k5, k10 (a point cloud every k steps), never, first<m> (`Schedule.key`).
@@ -23,7 +24,7 @@ from torch import Tensor
 from ..graphs.connectivity import Connectivity
 from ..batch import TrajectoryBatch
 from ..reports import markdown_table
-from .metrics import batch_iou, m_plus_10_mse, m_plus_10_starts, one_step_mse, rollout_mse
+from .metrics import batch_iou, m_plus_10_mse, m_plus_10_starts, one_step_mse, rollout_mse, rollout_volume_iou
 from .rollout import StepFn, m_plus_10_rollouts, one_step_predictions, rollout
 from .schedules import Never, Schedule
 
@@ -46,7 +47,7 @@ def evaluate_batch(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Connec
                    horizon: int = 10, m_plus_10_stride: int = 1) -> dict[str, Tensor]:
     """Per-trajectory metrics {name: float64 [B]} (module docstring) of `step_fn` on `batch`.
     m_plus_10 is skipped when trajectories are too short (T <= horizon) and averages over every
-    `m_plus_10_stride`-th start m (1: all, the paper's metric); iou needs 2D."""
+    `m_plus_10_stride`-th start m (1: all, the paper's metric)."""
     if m_plus_10_stride < 1:
         raise ValueError(f"m_plus_10_stride must be >= 1, got {m_plus_10_stride}")
     true = split_trajectories(batch.positions, batch)
@@ -63,6 +64,9 @@ def evaluate_batch(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Connec
         add(f"rollout_mse_{key}", [rollout_mse(p, t)[0] for p, t in zip(pred, true)])
         if iou and batch.positions.shape[-1] == 2:
             add(f"rollout_iou_{key}", [batch_iou(p, t, trajectory_cells(batch, b))[0, 1:].mean().item()
+                                       for b, (p, t) in enumerate(zip(pred, true))])
+        elif iou:
+            add(f"rollout_iou_{key}", [rollout_volume_iou(p, t, trajectory_cells(batch, b))
                                        for b, (p, t) in enumerate(zip(pred, true))])
     if m_plus_10 and batch.num_steps > horizon:
         preds = m_plus_10_rollouts(step_fn, batch, connectivity, horizon,

@@ -60,7 +60,7 @@ class GraphSimulator(pl.LightningModule):
             lr_warmup_steps; lr_decay_rate = 1 and no warm-up (the defaults) keep the paper's constant lr.
         window: transitions per training sample (backpropagation through time for the LSTM).
         eval_schedules: point-cloud schedules of the test rollouts ("every:K", "first:M", "never").
-        test_m_plus_10, test_iou: also compute the m+10-step error and (2D) the IoU in `test`.
+        test_m_plus_10, test_iou: also compute the m+10-step error and the IoU (2D: areas; 3D: volumes, every 10th state) in `test`.
         statistics_batches: training batches in the normalization pass (None: the whole split).
         std_floor: lower bound of every normalization std (see `normalization.DEFAULT_STD_FLOOR`).
     """

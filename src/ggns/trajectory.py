@@ -13,6 +13,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+def pack_point_clouds(clouds: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-step point clouds [P_t, d] -> (`points` [P, d] float32, `point_offsets` [T+1] int64) as a
+    `Trajectory` stores them."""
+    points = np.concatenate(clouds).astype(np.float32)
+    offsets = np.concatenate([[0], np.cumsum([len(c) for c in clouds])]).astype(np.int64)
+    return points, offsets
+
+
 @dataclass
 class Trajectory:
     rest_positions: np.ndarray  # [N, d] float64, mesh nodes in the rest (mesh-space) state

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..trajectory import Trajectory
+from ..trajectory import Trajectory, pack_point_clouds
 from ..geometry import cell_edges
 from ..sim.material import Material
 from ..sim.run import simulate
@@ -146,7 +146,8 @@ def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajec
     substeps = int(scene["substeps"])
     solver = SolverConfig(dt=scene["frame_dt"] / substeps, **config["solver"])
     positions, diagnostics = simulate(rest, cells, fixed, material, solver, [(path, faces)], substeps)
-    clouds = [sensor.observe(positions[t], cells, path[t], faces, rng) for t in range(len(positions))]
+    points, offsets = pack_point_clouds([sensor.observe(positions[t], cells, path[t], faces, rng)
+                                         for t in range(len(positions))])
     return Trajectory(
         rest_positions=rest,
         cells=cells,
@@ -155,8 +156,8 @@ def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajec
         fixed=fixed,
         collider_faces=faces,
         collider_positions=path,
-        points=np.concatenate(clouds).astype(np.float32),
-        point_offsets=np.concatenate([[0], np.cumsum([len(c) for c in clouds])]).astype(np.int64),
+        points=points,
+        point_offsets=offsets,
         youngs_modulus=float(scene["youngs_modulus"]),
         poissons_ratio=spec.poissons_ratio,
         seed=int(seed),

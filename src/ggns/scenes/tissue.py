@@ -24,7 +24,7 @@ from ..geometry import box_tet_mesh, cell_edges
 from ..sim.material import Material
 from ..sim.run import simulate
 from ..sim.solver import SolverConfig
-from ..trajectory import Trajectory
+from ..trajectory import Trajectory, pack_point_clouds
 
 
 DIM = 3  # spatial dimension of the scene
@@ -176,8 +176,9 @@ def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajec
     positions, diagnostics = simulate(rest, cells, fixed, material, solver, [(collider, no_faces)], substeps,
                                       fixed_paths=targets)
     liver = liver_mesh(scene)
-    clouds = [sensor.observe(positions[t], cells, None, None, rng, occluders=[liver, gripper_shaft(scene, path[t])])
-              for t in range(T)]
+    points, offsets = pack_point_clouds([sensor.observe(positions[t], cells, None, None, rng,
+                                                        occluders=[liver, gripper_shaft(scene, path[t])])
+                                         for t in range(T)])
     return Trajectory(
         rest_positions=rest,
         cells=cells,
@@ -186,8 +187,8 @@ def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajec
         fixed=fixed,
         collider_faces=no_faces,
         collider_positions=collider,
-        points=np.concatenate(clouds).astype(np.float32),
-        point_offsets=np.concatenate([[0], np.cumsum([len(c) for c in clouds])]).astype(np.int64),
+        points=points,
+        point_offsets=offsets,
         youngs_modulus=material.youngs_modulus,
         poissons_ratio=material.poissons_ratio,
         seed=int(seed),

@@ -68,6 +68,14 @@ def check_cells(cells, num_nodes: int | None = None, name: str = "cells", corner
     return cells
 
 
+def min_volume_ratio(positions: np.ndarray, rest: np.ndarray, cells: np.ndarray) -> float:
+    """The smallest det F (deformed over rest signed area / volume) of any cell at any frame of
+    positions [T, N, d] (or one frame [N, d]): <= 0 once a cell is flat or inverted."""
+    frames = np.asarray(positions, dtype=np.float64).reshape((-1,) + np.shape(rest))
+    rest_volumes = signed_volumes(rest, cells)
+    return float(min((signed_volumes(x, cells) / rest_volumes).min() for x in frames))
+
+
 def box_tet_mesh(lo, hi, divisions) -> tuple[np.ndarray, np.ndarray]:
     """Structured tetrahedral mesh of the axis-aligned box [lo, hi].
 

@@ -3,6 +3,7 @@ trajectory on one thread (as a generation worker runs), and optionally the gener
 preset's splits with its worker count."""
 from __future__ import annotations
 
+import math
 import platform
 import statistics
 import tempfile
@@ -14,7 +15,7 @@ import torch
 
 from ..config import load_config
 from ..data.generate import generate, trajectory_seed
-from ..geometry import box_tet_mesh
+from ..geometry import box_tet_mesh, min_volume_ratio
 from ..scenes import SCENES
 from ..sensors.camera import DepthSensor, SensorConfig
 from ..sim.fem import ElasticBody
@@ -119,15 +120,6 @@ def bench_linear_solvers(nodes: tuple[int, int, int] = (10, 6, 6), frames: int =
     return result
 
 
-def min_volume_ratio(positions: np.ndarray, rest: np.ndarray, cells: np.ndarray) -> float:
-    """The smallest det F (deformed over rest signed volume) of any cell at any frame of positions
-    [T, N, d]: <= 0 once an element is flat or inverted."""
-    def signed(x):
-        corners = x[..., cells, :]
-        return np.linalg.det(corners[..., 1:, :] - corners[..., :1, :])
-    return float((signed(positions) / signed(rest)).min())
-
-
 def bench_tangents(preset: str = "tissue_tiny", steps: int = 100, seeds: int = 3,
                    tangents: tuple[str, ...] = ("warped", "exact"), combinations: tuple[int, ...] | None = None,
                    first_seed: int = 1234, overrides: Sequence[str] = ()) -> dict:
@@ -177,15 +169,19 @@ def bench_tangents(preset: str = "tissue_tiny", steps: int = 100, seeds: int = 3
                     rows.append(row)
     finally:
         torch.set_num_threads(threads)
+    # a failed trajectory has no Poisson's ratio of its own: it takes its combination's (from a row that
+    # finished; NaN, its own summary line, if none did)
+    nu_of = {r["combination"]: r["poissons_ratio"] for r in rows if "poissons_ratio" in r}
+    for r in rows:
+        r.setdefault("poissons_ratio", nu_of.get(r["combination"], float("nan")))
     summary = []
     for tangent in tangents:
-        done = [r for r in rows if r["tangent"] == tangent and "failure" not in r]
-        for nu in sorted({r["poissons_ratio"] for r in rows if "poissons_ratio" in r}):
-            mine = [r for r in done if r["poissons_ratio"] == nu]
-            failed = [r for r in rows if r["tangent"] == tangent and "failure" in r
-                      and any(o.get("poissons_ratio") == nu for o in rows if o["combination"] == r["combination"])]
+        for nu in sorted({r["poissons_ratio"] for r in rows}, key=lambda v: (math.isnan(v), v)):
+            same = [r for r in rows if r["tangent"] == tangent and (r["poissons_ratio"] == nu or
+                                                                    math.isnan(nu) and math.isnan(r["poissons_ratio"]))]
+            mine = [r for r in same if "failure" not in r]
             summary.append({
-                "tangent": tangent, "poissons_ratio": nu, "finished": len(mine), "failed": len(failed),
+                "tangent": tangent, "poissons_ratio": nu, "finished": len(mine), "failed": len(same) - len(mine),
                 "ms/frame (median)": statistics.median(r["ms/frame"] for r in mine) if mine else float("nan"),
                 "newton mean": float(np.mean([r["newton mean"] for r in mine])) if mine else float("nan"),
                 "newton max": max((r["newton max"] for r in mine), default=0),

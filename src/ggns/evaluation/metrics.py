@@ -16,7 +16,7 @@ import shapely
 import torch
 
 from ..geometry import check_cells
-from .volume import exact_obstacles, exact_volumes, sampled_volumes
+from .volume import exact_solid, exact_volumes, sampled_volumes
 
 # a triangle with |2*area| <= _DEGENERATE * (|e1|^2 + |e2|^2) is treated as collinear (covers no area)
 _DEGENERATE = 1e-12
@@ -269,13 +269,15 @@ def tet_mesh_iou(pred_nodes, true_nodes, cells, method: str = "auto", samples: i
     pred, true = pred.to(torch.float64).numpy(), true.to(torch.float64).numpy()
     reason = "requested"
     if method != "sampled":
-        obstacles = [f"{name}: {problem}" for name, x in (("pred_nodes", pred), ("true_nodes", true))
-                     for problem in exact_obstacles(x, cells)]
+        solids, obstacles = {}, []
+        for name, x in (("pred_nodes", pred), ("true_nodes", true)):
+            solids[name], problems = exact_solid(x, cells)
+            obstacles += [f"{name}: {problem}" for problem in problems]
         reason = "; ".join(obstacles)
         if method == "exact" and obstacles:
             raise ValueError(f"exact volume IoU is invalid here: {reason}")
     if method != "sampled" and not reason:
-        volumes, used, samples = exact_volumes(pred, true, cells), "exact", 0
+        volumes, used, samples = exact_volumes(solids["pred_nodes"], solids["true_nodes"]), "exact", 0
     else:
         volumes, used = sampled_volumes(pred, true, cells, samples, seed), "sampled"
     pred_volume, true_volume, inter = volumes

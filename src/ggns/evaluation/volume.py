@@ -4,10 +4,11 @@
 Two ways to the volumes of two meshes and of their intersection:
 
 * exact: each mesh's boundary surface (facets of exactly one tetrahedron, oriented outward) is a
-  manifold3d solid, and the intersection is a manifold3d Boolean in float64. Valid only where the
-  mesh bounds the region it covers: no inverted or degenerate tetrahedron, no facet shared by
-  more than two tetrahedra, a closed 2-manifold boundary that does not meet itself, no cavity,
-  no boundary components whose solids overlap (`exact_obstacles` lists what fails).
+  manifold3d solid (`exact_solid`, built once per mesh), and the intersection is a manifold3d
+  Boolean in float64 (`exact_volumes`). Valid only where the mesh bounds the region it covers: no
+  inverted or degenerate tetrahedron, no facet shared by more than two tetrahedra, a closed
+  2-manifold boundary that does not meet itself, no cavity, no boundary components whose solids
+  overlap (`exact_solid` lists what fails instead of returning a solid).
 * sampled: membership of a fixed, seeded set of scrambled Sobol points in the bounding box of
   both meshes, tested by barycentric coordinates against every tetrahedron (either orientation:
   an inverted tetrahedron still covers its volume, as a folded triangle does in 2D); volumes are
@@ -15,6 +16,7 @@ Two ways to the volumes of two meshes and of their intersection:
 """
 from __future__ import annotations
 
+import manifold3d
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -65,7 +67,7 @@ def surface_self_intersects(positions: np.ndarray, faces: np.ndarray) -> bool:
     their centres) that share at most one vertex; a pair meets where an edge of one crosses the
     plane of the other inside or on the boundary of that triangle, so crossings and most
     touching count. Contacts made only within a common plane (coplanar triangles, an edge lying
-    in the other's plane) are not seen; `exact_obstacles` catches the overlaps these hide between
+    in the other's plane) are not seen; `exact_solid` catches the overlaps these hide between
     separate boundary components by a Boolean union of the components.
 
     Args:
@@ -95,15 +97,17 @@ def surface_self_intersects(positions: np.ndarray, faces: np.ndarray) -> bool:
     return False
 
 
-def exact_obstacles(positions: np.ndarray, cells: np.ndarray) -> list[str]:
-    """Why the exact (boundary-surface Boolean) volumes would be wrong for a tetrahedral mesh.
+def exact_solid(positions: np.ndarray, cells: np.ndarray) -> tuple[manifold3d.Manifold | None, list[str]]:
+    """The manifold3d solid bounded by a tetrahedral mesh's boundary, or why the exact
+    (boundary-surface Boolean) volumes would be wrong for it.
 
     Args:
         positions: float64 [N, 3] node positions, finite.
         cells: int [C, 4] tetrahedra.
 
     Returns:
-        One phrase per problem found (empty when the exact path is valid): inverted or
+        (solid, []) when the exact path is valid, else (None, problems): one phrase per problem
+        found: inverted or
         degenerate tetrahedra, facets shared by more than two tetrahedra, a boundary that is not a
         closed 2-manifold, a boundary that meets itself, an inward-facing boundary component (a
         cavity; not handled, to keep the overlap check simple), boundary components whose solids
@@ -113,39 +117,36 @@ def exact_obstacles(positions: np.ndarray, cells: np.ndarray) -> list[str]:
     Known gap: a single connected boundary folded so that it overlaps itself with every contact
     exactly coplanar (measure zero for computed positions, possible for hand-made ones) passes.
     """
-    import manifold3d
-
     x = np.asarray(positions, dtype=np.float64)
     cells = np.asarray(cells, dtype=np.int64)
     bad = int(_degenerate_or_inverted(x, cells).sum())
     if bad:
-        return [f"{bad} inverted or degenerate tetrahedra"]
+        return None, [f"{bad} inverted or degenerate tetrahedra"]
     keys = np.sort(np.concatenate([np.delete(cells, j, axis=1) for j in range(4)]), axis=1)
     crowded = int((np.unique(keys, axis=0, return_counts=True)[1] > 2).sum())
     if crowded:
-        return [f"{crowded} facets shared by more than two tetrahedra"]
+        return None, [f"{crowded} facets shared by more than two tetrahedra"]
     faces = boundary_facets(cells, x)
     solid = _solid(x, faces)
     status = solid.status()
     if status != manifold3d.Error.NoError:
-        return [f"boundary surface is not a closed 2-manifold ({status.name})"]
+        return None, [f"boundary surface is not a closed 2-manifold ({status.name})"]
     if surface_self_intersects(x, faces):
-        return ["boundary surface intersects itself"]
+        return None, ["boundary surface intersects itself"]
     parts = solid.decompose()
     if len(parts) > 1:
         volumes = np.array([part.volume() for part in parts])
         if (volumes <= 0).any():
-            return [f"{int((volumes <= 0).sum())} inward-facing boundary components (cavities)"]
+            return None, [f"{int((volumes <= 0).sum())} inward-facing boundary components (cavities)"]
         union = manifold3d.Manifold.batch_boolean(parts, manifold3d.OpType.Add).volume()
         if union < volumes.sum() * (1 - 1e-9):
-            return [f"its {len(parts)} boundary components overlap (union {union:.6g} < sum {volumes.sum():.6g})"]
-    return []
+            return None, [f"its {len(parts)} boundary components overlap (union {union:.6g} < sum "
+                          f"{volumes.sum():.6g})"]
+    return solid, []
 
 
-def _solid(x: np.ndarray, faces: np.ndarray):
+def _solid(x: np.ndarray, faces: np.ndarray) -> manifold3d.Manifold:
     """manifold3d solid bounded by `faces` (outward), on the nodes they use, in float64."""
-    import manifold3d
-
     used, local = np.unique(faces, return_inverse=True)
     mesh = manifold3d.Mesh64(
         vert_properties=np.ascontiguousarray(x[used]),
@@ -154,24 +155,10 @@ def _solid(x: np.ndarray, faces: np.ndarray):
     return manifold3d.Manifold(mesh)
 
 
-def exact_volumes(pred_positions: np.ndarray, true_positions: np.ndarray, cells: np.ndarray
-                  ) -> tuple[float, float, float]:
-    """Volumes of two tetrahedral meshes and of their intersection by manifold3d Booleans.
-
-    Valid only where `exact_obstacles` is empty for both meshes (not checked here).
-
-    Args:
-        pred_positions: float64 [N, 3].
-        true_positions: float64 [N, 3].
-        cells: int [C, 4] tetrahedra shared by both meshes.
-
-    Returns:
-        (pred volume, true volume, intersection volume).
-    """
-    cells = np.asarray(cells, dtype=np.int64)
-    a, b = (_solid(x, boundary_facets(cells, x)) for x in (np.asarray(pred_positions, dtype=np.float64),
-                                                          np.asarray(true_positions, dtype=np.float64)))
-    return a.volume(), b.volume(), (a ^ b).volume()
+def exact_volumes(pred: manifold3d.Manifold, true: manifold3d.Manifold) -> tuple[float, float, float]:
+    """(pred volume, true volume, intersection volume) of two solids from `exact_solid`, the
+    intersection by a manifold3d Boolean."""
+    return pred.volume(), true.volume(), (pred ^ true).volume()
 
 
 def _covered(points: torch.Tensor, x: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:

@@ -176,8 +176,9 @@ def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajec
     positions, diagnostics = simulate(rest, cells, fixed, material, solver, [(collider, no_faces)], substeps,
                                       fixed_paths=targets)
     liver = liver_mesh(scene)
+    shaft, shaft_faces = gripper_shaft(scene, np.zeros(3))  # built once, moved with the gripper
     points, offsets = pack_point_clouds([sensor.observe(positions[t], cells, None, None, rng,
-                                                        occluders=[liver, gripper_shaft(scene, path[t])])
+                                                        occluders=[liver, (shaft + path[t], shaft_faces)])
                                          for t in range(T)])
     return Trajectory(
         rest_positions=rest,

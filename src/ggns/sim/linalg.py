@@ -1,7 +1,8 @@
 """The two linear-algebra back ends of the Newton core: dense (torch Cholesky) and sparse (SuperLU).
 
 A back end owns the matrix format of every Hessian-like matrix the solver builds (the element
-tangent, warped or exact, both with the element-block pattern; diagonal mass and damping terms, contact blocks): `dense` holds [N d, N d] torch tensors,
+tangent, warped or exact, both with the element-block pattern; diagonal mass and damping terms,
+contact blocks): `dense` holds [N d, N d] torch tensors,
 `sparse` holds the values [nnz] of one fixed sparsity pattern (element blocks + node blocks,
 row-major), so sums and scalings of matrices are plain tensor arithmetic in both. `solve` restricts
 a matrix to the free degrees of freedom (the Dirichlet dofs are removed, as in the dense path),
@@ -9,7 +10,7 @@ factors it and solves; it returns None when the matrix is not positive definite,
 reports where that happened.
 
 `auto` chooses sparse from `SPARSE_MIN_FREE_DOFS` free unknowns on (docs/simulator.md, "Linear
-solver": the crossover measured on one thread for 2D triangles and 3D tetrahedra).
+solver": the 3D crossover measured on one thread with `python -m ggns bench solvers`).
 """
 from __future__ import annotations
 

@@ -129,3 +129,22 @@ def test_fit_and_test_through_the_cli_on_tiny_tissue(tiny, tmp_path, model):
         assert pvds == ["GGNS_every_2.pvd", "points.pvd", "truth.pvd"]
         assert len(list((tmp_path / "export" / "truth").glob("*.vtu"))) == 12
         assert len(list((tmp_path / "export" / "points").glob("*.vtu"))) == 6  # steps 0, 2, .., 10
+
+
+def test_static_reference_row_scores_volumes_in_3d(tiny):
+    """The sweep's static row (mesh held at S_0) on tissue: MSE and the volume IoU, which is 1 at
+    rest and below 1 once the gripper has deformed the block."""
+    import torch
+
+    from ggns.baselines.scores import static_metrics
+    from ggns.evaluation.metrics import rollout_volume_iou
+
+    _, trajectories = tiny
+    row = static_metrics(trajectories)
+    assert row["rollout_iou_never"]["count"] == len(trajectories)
+    held = [np.broadcast_to(t.positions[:1], t.positions.shape) for t in trajectories]
+    ious = [rollout_volume_iou(h, t.positions, t.cells) for h, t in zip(held, trajectories)]
+    assert row["rollout_iou_never"]["mean"] == pytest.approx(np.mean(ious))
+    assert all(0.5 < iou < 1.0 for iou in ious)
+    assert rollout_volume_iou(trajectories[0].positions, trajectories[0].positions, trajectories[0].cells) == pytest.approx(1.0)
+    assert row["rollout_mse_never"]["mean"] > 0 and torch.isfinite(torch.tensor(row["one_step_mse"]["mean"]))

@@ -14,7 +14,7 @@ trajectories and stores them beside its runs):
                              <output>/alpha_shapes/test_metrics.json
     static                   a reference row, not a paper baseline: the mesh held at its initial
                              state S_0 for the whole trajectory, scored as rollout_mse_never and
-                             rollout_iou_never; it shows how much motion a model has to predict
+                             rollout_iou_never (3D: volumes, every 10th state); it shows how much motion a model has to predict
                              (a learned simulator above it has learned nothing useful);
                              <output>/static/test_metrics.json
 """
@@ -25,7 +25,7 @@ import torch
 
 from ..batch import TrajectoryBatch
 from ..evaluation.evaluate import MetricTable, zero_motion_one_step_mse
-from ..evaluation.metrics import batch_iou, rollout_mse
+from ..evaluation.metrics import batch_iou, rollout_mse, rollout_volume_iou
 from ..evaluation.schedules import parse_schedule
 from .alpha_shapes import trajectory_alpha_iou
 from .initial_mesh import generated_trajectory, initial_mesh_rollout_ious
@@ -61,9 +61,11 @@ def static_metrics(trajectories) -> dict[str, dict[str, float]]:
         mse.append(rollout_mse(held, true)[0])
         if traj.dim == 2:
             iou.append(batch_iou(held, true, traj.cells)[0, 1:].mean().item())
+        else:  # tetrahedra: volume IoU of every 10th state, as the models' rollout_iou_<s>
+            iou.append(rollout_volume_iou(held, true, traj.cells))
         one_step.append(zero_motion_one_step_mse(TrajectoryBatch.from_trajectories([traj], dtype=torch.float64))[0])
     return summarize_values({"rollout_mse_never": mse, "one_step_mse": [float(v) for v in one_step],
-                             **({"rollout_iou_never": iou} if iou else {})})
+                             "rollout_iou_never": iou})
 
 
 def generated_mesh_metrics(model, trajectories, schedules=None) -> dict[str, dict[str, float]]:

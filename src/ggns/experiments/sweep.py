@@ -25,8 +25,8 @@ stopped. `summarize` aggregates the finished runs into <output>/summary.{md,csv}
 --task $SLURM_ARRAY_TASK_ID`).
 
 `run_baselines` scores the baselines of `ggns.baselines.scores` on the sweep's test trajectories and
-stores them beside its runs. It is configured by the sweep file's optional `baselines` section (2D
-datasets only):
+stores them beside its runs. It is configured by the sweep file's optional `baselines` section
+(Alpha Shapes and initial-mesh generation: 2D datasets only; the static row: 2D and 3D):
 
 
     baselines:

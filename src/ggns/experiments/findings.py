@@ -1,4 +1,6 @@
-"""The GGNS paper's Deformable Plate findings, checked on an aggregated sweep table.
+"""The GGNS paper's findings, checked on an aggregated sweep table (the paper shows the same
+orderings on the Deformable Plate and on Tissue Manipulation; its tissue figures are quoted in
+docs/results.md).
 
 Each check compares seed means (`aggregate` table; model names as in the sweep presets:
 ggns, ggns_lstm, mgn, mgn_m) and returns a `Finding`: its statement, whether it holds, and the

@@ -215,7 +215,8 @@ def test_every_run_of_every_sweep_preset_parses(preset, tmp_path):
         argv = ["--config", run.config, "--seed_everything", str(run.seed),
                 "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
         cli = build_cli(argv, run=False)
-        assert cli.model.hparams.connectivity.startswith("plate_")
+        scene = cli.datamodule.hparams.dataset.split("_")[0]  # plate_small -> plate, tissue_cpu -> tissue
+        assert cli.model.hparams.connectivity.startswith(f"{scene}_")  # the model's graph is the data's scene's
 
 
 def test_missing_datasets_are_generated_once_before_parallel_runs(cli_data, tmp_path):

@@ -212,6 +212,54 @@ def export(checkpoint: str, dataset: str = "plate_small", data_dir: str | None =
     return paths
 
 
+def diagnose(checkpoint: str, dataset: str = "tissue_cpu", data_dir: str | None = None,
+             split: Literal["train", "val", "test"] = "val", trajectories: int = 9,
+             schedule: Sequence[str] = ("every:1", "never"), output: str | None = None) -> str:
+    """Where a 3D checkpoint's rollout error lives: surface normal, surface tangential, interior.
+
+    Args:
+        checkpoint: the model checkpoint (.ckpt) to roll out
+        dataset: data preset (3D) whose split holds the trajectories
+        data_dir: folder of the split files (default: the preset's output)
+        split: the split
+        trajectories: the first n trajectories of the split, rolled out as one batch
+        schedule: point-cloud schedules to roll out (a model without point clouds uses never)
+        output: also write the table to this markdown file
+    """
+    from .batch import TrajectoryBatch
+    from .data.module import SimulationDataModule
+    from .evaluation.evaluate import split_trajectories
+    from .evaluation.observability import PARTS, error_shares
+    from .evaluation.schedules import effective_schedule, parse_schedule
+    from .models.simulators import load_simulator
+    from .reports import markdown_table, write_text
+
+    model = load_simulator(checkpoint, map_location="cpu")
+    chosen = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False).trajectories(split)[:trajectories]
+    if not chosen or chosen[0].dim != 3:
+        raise ValueError(f"diagnose needs 3D trajectories; {dataset}/{split} has {'none' if not chosen else chosen[0].dim}")
+    batch = TrajectoryBatch.from_trajectories(chosen)
+    rows, done = [], set()
+    for text in schedule:
+        plan = effective_schedule(parse_schedule(text), model.uses_points)
+        if plan.key in done:
+            continue
+        done.add(plan.key)
+        preds = split_trajectories(model.rollout(batch, plan), batch)
+        parts = [error_shares(p[0].numpy(), traj.positions, traj.rest_positions, traj.cells, traj.fixed)
+                 for p, traj in zip(preds, chosen)]
+        mean = {k: sum(part[k] for part in parts) / len(parts) for k in parts[0]}
+        rows.append([plan.key, f"{sum(mean[p] for p in PARTS):.3g}",
+                     *(f"{mean[p]:.3g} ({mean[p + '_share']:.2f})" for p in PARTS)])
+    table = (f"{type(model).__name__} from {checkpoint}, {len(chosen)} {split} trajectories of {dataset}: mean squared "
+             f"error per free node and coordinate over states 1..T-1 (share of the total)\n\n"
+             + markdown_table(["schedule", "free nodes", *PARTS], rows) + "\n")
+    print(table)
+    if output:
+        write_text(output, table)
+    return table
+
+
 def sweep(*overrides: str, config: str = "plate", task: int | None = None, slurm: str | None = None,
           aggregate_only: bool = False) -> None:
     """Multi-seed sweep of model configs (fit + test per run, resumable), then baselines and summary.
@@ -261,6 +309,7 @@ COMMANDS = {
     "bench": {"sim": bench_sim, "solvers": bench_solvers, "models": bench_models, "tradeoff": bench_tradeoff,
               "learning": bench_learning},
     "export": export,
+    "diagnose": diagnose,
     "sweep": sweep,
     "demo": demo,
 }

@@ -248,11 +248,12 @@ def diagnose(checkpoint: str, dataset: str = "tissue_cpu", data_dir: str | None 
         preds = split_trajectories(model.rollout(batch, plan), batch)
         parts = [error_shares(p[0].numpy(), traj.positions, traj.rest_positions, traj.cells, traj.fixed)
                  for p, traj in zip(preds, chosen)]
-        mean = {k: sum(part[k] for part in parts) / len(parts) for k in parts[0]}
-        rows.append([plan.key, f"{sum(mean[p] for p in PARTS):.3g}",
-                     *(f"{mean[p]:.3g} ({mean[p + '_share']:.2f})" for p in PARTS)])
+        mean = {p: sum(part[p] for part in parts) / len(parts) for p in PARTS}
+        total = sum(mean.values())
+        rows.append([plan.key, f"{total:.3g}",
+                     *(f"{mean[p]:.3g} ({mean[p] / total if total > 0 else 0.0:.2f})" for p in PARTS)])
     table = (f"{type(model).__name__} from {checkpoint}, {len(chosen)} {split} trajectories of {dataset}: mean squared "
-             f"error per free node and coordinate over states 1..T-1 (share of the total)\n\n"
+             f"error per free node and coordinate over states 1..T-1, mean over trajectories (share of that total)\n\n"
              + markdown_table(["schedule", "free nodes", *PARTS], rows) + "\n")
     print(table)
     if output:

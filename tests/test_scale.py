@@ -13,7 +13,7 @@ from ggns.data.module import SimulationDataModule
 from ggns.data.schema import DatasetError, config_differences, read_trajectories
 from ggns.batch import TrajectoryBatch
 from ggns.graphs.connectivity import load_connectivity
-from ggns.graphs.scale import check, measure, report
+from ggns.graphs.scale import check, graph_hops, measure, report
 from ggns.graphs.state import state_graph
 from ggns.scenes.plate import plate_mesh
 
@@ -94,3 +94,25 @@ def test_split_of_another_scene_is_refused(tiny_data_dir, tmp_path):
     data = SimulationDataModule(str(earlier), generate_missing=False)
     with pytest.raises(DatasetError, match="another configuration.*scene.bottom_width"):
         data.trajectories("val")
+
+
+def test_graph_hops_on_a_path_and_a_split_graph():
+    path = np.array([[0, 1, 2], [1, 2, 3]])  # 0-1-2-3, one direction only: hops count both ways
+    assert graph_hops(4, path).max() == 3
+    assert graph_hops(4, path, np.array([False, False, False, True])).tolist() == [3, 2, 1, 0]
+    assert graph_hops(4, path, np.array([1])).tolist() == [1, 0, 1, 2]
+    assert np.isinf(graph_hops(5, path, np.array([0]))[4])  # node 4 has no edge
+    assert np.isinf(graph_hops(4, path, np.zeros(4, dtype=bool))).all()  # no source
+
+
+def test_hops_of_the_plate_grid_match_its_rows(tiny_data_dir):
+    """Plate grids of n x n nodes with one diagonal per quad (bottom-right to top-left): opposite corners
+    lie 2(n-1) mesh hops apart, the top row n-1 hops above the fixed bottom row; world edges shorten both."""
+    trajs = read_trajectories(split_path(tiny_data_dir, "train"))[:2]
+    n = load_config("plate_tiny")["scene"]["grid_nodes"]
+    values = measure(trajs, load_connectivity("plate_full_graph"), load_connectivity("plate_mgn"), 0.01, stride=4)
+    assert values["mesh_hops_diameter"] == 2 * (n - 1)
+    assert values["fixed_hops_max"] == n - 1
+    assert values["mesh_hops_diameter_world"] <= values["mesh_hops_diameter"]
+    assert values["fixed_hops_max_world"] <= values["fixed_hops_max"]
+    assert 0 < values["collider_hops_max"] <= 2 * (n - 1) or np.isnan(values["collider_hops_max"])

@@ -15,6 +15,13 @@ Measured (over the chosen trajectories and every `stride`-th step):
     collider_step          collider displacement per step (median)
     noise_over_motion      training noise std / free_motion_rms
     noise_over_edge        training noise std / smallest mesh edge
+    mesh_hops_diameter     most mesh-edge hops between two mesh nodes (rest mesh; max over trajectories)
+    fixed_hops_max         mesh-edge hops from the farthest free node to a fixed node (max)
+    collider_hops_max      mesh-edge hops from the farthest mesh node to one a collider-mesh edge reaches,
+                           in the model graph (max over measured steps with such edges)
+    *_world                the same three over mesh and world edges of the baseline graph
+A model passes messages one hop per processor block: fewer blocks than these hops leave nodes that
+cannot see the fixed nodes or the collider within one step (the receptive field).
 """
 from __future__ import annotations
 
@@ -22,8 +29,10 @@ import math
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sparse
 import torch
 import torch_cluster
+from scipy.sparse.csgraph import shortest_path
 
 from ..batch import TrajectoryBatch
 from ..config import load_config
@@ -38,6 +47,34 @@ def _edge_lengths(traj: Trajectory) -> np.ndarray:
     return np.linalg.norm(traj.rest_positions[traj.edges[:, 0]] - traj.rest_positions[traj.edges[:, 1]], axis=1)
 
 
+def graph_hops(num_nodes: int, edge_index: np.ndarray, sources: np.ndarray | None = None) -> np.ndarray:
+    """Fewest hops over the undirected edges `edge_index` [2, E] between nodes: [num_nodes, num_nodes] if
+    sources is None, else [num_nodes] from every node to the nearest node of `sources` (a bool mask or
+    indices); inf where unreachable."""
+    edge_index = np.asarray(edge_index)
+    adjacency = sparse.coo_matrix((np.ones(edge_index.shape[1]), (edge_index[0], edge_index[1])),
+                                  shape=(num_nodes, num_nodes)).tocsr()
+    if sources is None:
+        return shortest_path(adjacency, directed=False, unweighted=True)
+    sources = np.flatnonzero(sources) if np.asarray(sources).dtype == bool else np.asarray(sources)
+    if len(sources) == 0:
+        return np.full(num_nodes, np.inf)
+    return shortest_path(adjacency, directed=False, unweighted=True, indices=sources).min(axis=0)
+
+
+def _hops(g, fixed: np.ndarray, with_world: bool) -> tuple[float, float, float]:
+    """(diameter, hops to the nearest fixed node, hops to the nearest collider-reached node) of one mesh graph."""
+    types = [MESH_EDGE] + ([WORLD_EDGE] if with_world and WORLD_EDGE in g.edge_types else [])
+    index = np.concatenate([g[et].edge_index.numpy() for et in types], axis=1)
+    n = g["mesh"].num_nodes
+    diameter = graph_hops(n, index).max()
+    to_fixed = graph_hops(n, index, fixed)[~fixed].max() if fixed.any() and (~fixed).any() else math.nan
+    c_m = ("collider", "near", "mesh")
+    reached = np.unique(g[c_m].edge_index[1].numpy()) if c_m in g.edge_types else np.zeros(0, dtype=int)
+    to_collider = graph_hops(n, index, reached).max() if len(reached) else math.nan
+    return float(diameter), float(to_fixed), float(to_collider)
+
+
 def measure(trajectories: list[Trajectory], graph: Connectivity, baseline_graph: Connectivity, noise_std: float,
             stride: int = 5) -> dict[str, float]:
     """The quantities of the module docstring for these trajectories (module docstring)."""
@@ -46,6 +83,7 @@ def measure(trajectories: list[Trajectory], graph: Connectivity, baseline_graph:
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
     counts, spacing, edges, per_type, world, m_p = [], [], [], {}, [], []
+    hops = {False: [], True: []}  # (diameter, to fixed, to collider) per step: model graph, baseline graph
     for traj in trajectories:
         batch = TrajectoryBatch.from_trajectories([traj], dtype=torch.float64)
         for t in range(0, traj.num_steps - 1, stride):
@@ -63,6 +101,8 @@ def measure(trajectories: list[Trajectory], graph: Connectivity, baseline_graph:
             m_p.append(sizes.get(("point", "near", "mesh"), 0) / len(traj.rest_positions))
             b = state_graph(batch, t, batch.positions[t], False, baseline_graph)
             world.append((b[WORLD_EDGE].edge_index.size(1) if WORLD_EDGE in b.edge_types else 0) / len(traj.rest_positions))
+            hops[False].append(_hops(state_graph(batch, t, batch.positions[t], False, graph), traj.fixed, False))
+            hops[True].append(_hops(b, traj.fixed, True))
     lengths = np.concatenate([_edge_lengths(t) for t in trajectories])
     motion = np.concatenate([np.diff(t.positions, axis=0)[:, ~t.fixed].ravel() for t in trajectories])
     collider = np.concatenate([np.linalg.norm(np.diff(t.collider_positions, axis=0), axis=-1).ravel()
@@ -82,6 +122,11 @@ def measure(trajectories: list[Trajectory], graph: Connectivity, baseline_graph:
         "free_motion_rms": float(np.sqrt(np.mean(motion**2))),
         "collider_step": float(np.median(collider)) if len(collider) else math.nan,
     }
+    for with_world, suffix in ((False, ""), (True, "_world")):
+        diameter, to_fixed, to_collider = np.array(hops[with_world]).T
+        for name, values in (("mesh_hops_diameter", diameter), ("fixed_hops_max", to_fixed),
+                             ("collider_hops_max", to_collider)):
+            out[name + suffix] = math.nan if np.isnan(values).all() else float(np.nanmax(values))
     out["noise_over_motion"] = noise_std / out["free_motion_rms"] if out["free_motion_rms"] > 0 else math.inf
     out["noise_over_edge"] = noise_std / out["smallest_mesh_edge"]
     for et, sizes in per_type.items():

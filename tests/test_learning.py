@@ -34,6 +34,11 @@ def test_steps_to_threshold_and_late_slope():
     # only the second half counts: a fall before step 2000, flat after
     assert late_slope(steps, np.where(steps < 2000, 10.0 ** (-steps / 500), 1e-4)) == pytest.approx(0.0, abs=1e-12)
     assert late_slope([100, 200], [1.0, 0.5]) is not None and late_slope([200], [1.0]) is None
+    # validations at 2000, 4000 and the fit's end 4001: the half [2000.5, 4001] spans one step, so 2000 joins
+    # (was -81 decades per 1000 steps, read off one step's change in a sweep summary)
+    assert late_slope([2000, 4000, 4001], [1e-4, 1e-5, 0.99e-5]) == pytest.approx(
+        np.polyfit([2.0, 4.0, 4.001], np.log10([1e-4, 1e-5, 0.99e-5]), 1)[0])
+    assert late_slope([4000, 4001], [1e-5, 0.99e-5]) is None  # one step apart and nothing earlier: no slope
 
 
 def test_variant_row_on_hand_made_curves():

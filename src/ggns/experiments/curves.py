@@ -65,12 +65,20 @@ def steps_to_threshold(steps: Sequence[float], values: Sequence[float], threshol
 
 def late_slope(steps: Sequence[float], values: Sequence[float]) -> float | None:
     """Least-squares slope of log10(value) per 1000 steps over the last half of the curve (points at
-    steps >= half the last step); None with fewer than 2 such positive points. Negative: still falling."""
+    steps >= half the last step). Where those points span less than a quarter of the last step (e.g.
+    validations at 4000 and at the fit's end, 4001), the last point before the half joins them, so
+    that one step's change is never read as a slope per 1000. None with fewer than 2 positive points
+    or a span still under a quarter. Negative: still falling."""
     steps, values = np.asarray(steps, dtype=float), np.asarray(values, dtype=float)
-    if steps.size == 0:
+    valid = (values > 0) & np.isfinite(values)
+    steps, values = steps[valid], values[valid]
+    if steps.size < 2:
         return None
-    keep = (steps >= steps.max() / 2) & (values > 0) & np.isfinite(values)
-    if keep.sum() < 2 or np.ptp(steps[keep]) == 0:
+    last = steps.max()
+    keep = steps >= last / 2
+    if np.ptp(steps[keep]) < last / 4 and (~keep).any():
+        keep |= steps == steps[~keep].max()
+    if keep.sum() < 2 or np.ptp(steps[keep]) < last / 4:
         return None
     return float(np.polyfit(steps[keep] / 1000.0, np.log10(values[keep]), 1)[0])
 

@@ -91,6 +91,31 @@ def test_ggns_m_is_ggns_given_the_material(val_batch):
         assert not torch.allclose(model.step(graph)[0], model.step(other)[0])
 
 
+@pytest.mark.parametrize("cls, partition", [(GGNS, True), (MGNM, False)])
+def test_type_partition_swaps_the_processor_and_survives_a_checkpoint(cls, partition, val_batch, tmp_path):
+    """type_partition overrides the class's architecture: GGNS with MGN's per-type encoders and edge
+    MLPs, or MGN with GGNS's one-hot shared processor (the paper's "MGN (1H)" ablation); the graph
+    (points, world edges, material) stays the class's, and a checkpoint rebuilds the same modules."""
+    default, model = make(cls), make(cls, type_partition=partition)
+    assert (default.edge_partition, default.core.type_encoding) == (not partition, "one_hot" if partition else "per_type")
+    assert (model.edge_partition, model.core.type_encoding) == (partition, "per_type" if partition else "one_hot")
+    edge_mlp = model.core.processor[0].edge_mlp
+    assert isinstance(edge_mlp, torch.nn.ModuleDict) == partition  # one MLP per edge type, or one shared
+    assert model.uses_points == default.uses_points and model.with_material == default.with_material
+    graph = first_graph(model, val_batch, True)
+    assert set(graph.edge_types) == set(first_graph(default, val_batch, True).edge_types)
+    with torch.no_grad():
+        displacement = model.step(graph)[0]
+    assert torch.isfinite(displacement).all()
+    path = tmp_path / "model.ckpt"
+    torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams),
+                "pytorch-lightning_version": "2"}, path)
+    loaded = cls.load_from_checkpoint(path)
+    assert loaded.edge_partition == partition
+    with torch.no_grad():
+        assert torch.equal(loaded.step(graph)[0], displacement)
+
+
 # ---- 2. translation invariance ---------------------------------------------------------------------
 def translated(batch: TrajectoryBatch, shift: torch.Tensor) -> TrajectoryBatch:
     """The same states moved by `shift` (mesh, collider and points; the rest state is mesh space)."""

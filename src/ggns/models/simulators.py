@@ -63,6 +63,9 @@ class GraphSimulator(pl.LightningModule):
         test_m_plus_10, test_iou: also compute the m+10-step error and the IoU (2D: areas; 3D: volumes, every 10th state) in `test`.
         statistics_batches: training batches in the normalization pass (None: the whole split).
         std_floor: lower bound of every normalization std (see `normalization.DEFAULT_STD_FLOOR`).
+        type_partition: True: MGN's per-type encoders and one edge MLP per edge type; False: GGNS's
+            one-hot types into shared encoders and one shared processor; None: the class's own (the
+            paper's: GGNS False, MGN True). The paper's "MGN (1H)" ablation is MGN with False.
     """
 
     edge_partition = False  # one edge MLP per edge type (MGN) or one shared processor (GGNS)
@@ -76,7 +79,8 @@ class GraphSimulator(pl.LightningModule):
                  test_m_plus_10: bool = True, test_iou: bool = True, statistics_batches: int | None = None,
                  std_floor: float = DEFAULT_STD_FLOOR, lr_final: float = 0.0, lr_decay_rate: float = 1.0,
                  lr_decay_steps: int = 1, lr_warmup_steps: int = 0, noise_field_std: float = 0.0,
-                 noise_field_wavelength: float = 4.0, noise_field_mixture: bool = False):
+                 noise_field_wavelength: float = 4.0, noise_field_mixture: bool = False,
+                 type_partition: bool | None = None):
         super().__init__()
         self.save_hyperparameters()
         validate_schedule(lr, lr_final, lr_decay_rate, lr_decay_steps, lr_warmup_steps)
@@ -97,6 +101,9 @@ class GraphSimulator(pl.LightningModule):
                              f"connectivity without point radii")
         self.schedules: list[Schedule] = [parse_schedule(s) for s in eval_schedules]
         self.window = window
+        if type_partition is not None:  # the paper's "MGN (1H)" ablation and its converse, per instance
+            self.edge_partition = type_partition
+            self.type_encoding = "per_type" if type_partition else "one_hot"
         self.core = EncodeProcessDecode(*self.input_dims(self.connectivity, dim, self.with_material), out_dim=dim,
                                         latent=latent, blocks=blocks, mlp_layers=mlp_layers,
                                         edge_partition=self.edge_partition, type_encoding=self.type_encoding,

@@ -10,20 +10,23 @@ import signal
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import pytorch_lightning as pl
 import torch
 
 from ggns.__main__ import main
 from ggns.batch import TrajectoryBatch
+from ggns.checkpoints import sha256
 from ggns.config import CONF_DIR
 from ggns.data.generate import split_path
+from ggns.data.predictions import read_predictions
 from ggns.data.schema import read_trajectories
 from ggns.evaluation.callbacks import RolloutEvaluation
 from ggns.evaluation.evaluate import zero_motion_one_step_mse
 from ggns.evaluation.schedules import EveryK, Never
 from ggns.evaluation.selection import val_metric
-from ggns.models.simulators import GGNS, MGN
+from ggns.models.simulators import GGNS, MGN, load_simulator
 from conftest import TINY12, make, normalizer_buffers
 
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -207,13 +210,20 @@ def test_cli_mgn_fit_and_test(cli_data, tmp_path, capsys):
     assert summary.pop("checkpoint")["selected_on"] == "val/rollout_mse_never"
     assert sorted(summary) == ["m10_mse", "one_step_mse", "rollout_iou_never", "rollout_mse_never"]
     assert all(math.isfinite(s["mean"]) and s["count"] == 2 for s in summary.values())
-    # predict: the RolloutWriter of the config saves the rollouts of the test trajectories
+    # predict: the RolloutWriter of the config writes the rollouts of the test trajectories as a predictions
+    # file, the format `python -m ggns rollout` writes (tests/test_own_data.py)
     run_cli(["predict", *cli_args("mgn", cli_data, tmp_path, "predict", "--ckpt_path", str(best))])
-    predictions = torch.load(tmp_path / "mgn" / "predict" / "predictions.pt")
-    (first,) = predictions  # the 2 test trajectories form one batch
-    assert first["schedule"] == "never" and len(first["node_offsets"]) == 3
-    positions = first["positions"]
-    assert positions.shape[1:] == (first["node_offsets"][-1], 2) and torch.isfinite(positions).all()
+    predictions = read_predictions(tmp_path / "mgn" / "predict" / "predictions.h5")
+    tests = read_trajectories(split_path(cli_data, "test"))
+    assert (predictions.model_class, predictions.schedule, predictions.scene) == ("MGN", "never", "plate")
+    assert predictions.checkpoint == str(best) and predictions.checkpoint_sha256 == sha256(best)
+    assert predictions.input_file == str(split_path(cli_data, "test").resolve()) and predictions.input_indices == [0, 1]
+    model = load_simulator(best, map_location="cpu")
+    batch = TrajectoryBatch.from_trajectories(tests)
+    direct = model.rollout(batch, "never")
+    for b, (x, traj) in enumerate(zip(predictions.positions, predictions.inputs)):
+        assert np.array_equal(traj.positions, tests[b].positions)
+        assert np.array_equal(x, direct[:, batch.node_offsets[b]:batch.node_offsets[b + 1]].numpy())
     # never silently another model: a checkpoint of another class than the config's is refused, and so
     # is a model argument on the command line that the checkpoint would replace; nothing is logged
     for config, extra, message in (("ggns", [], "holds a ggns.models.simulators.MGN, but the config asks for "

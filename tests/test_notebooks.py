@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 import pytorch_lightning as pl
 
 from ggns.config import CONF_DIR
 from ggns.data.module import SimulationDataModule
+from ggns.data.predictions import read_predictions
+from ggns.data.schema import SplitReader
 from ggns.models.simulators import GGNS, MGN
 
 NOTEBOOKS = CONF_DIR.parent / "notebooks"
@@ -50,6 +53,22 @@ def test_rollout_animation_notebook(tiny_checkpoints, tiny_data_dir, tmp_path, m
     gif = tmp_path / "rollout_test0.gif"
     assert gif.read_bytes()[:6] in (b"GIF87a", b"GIF89a")
     assert all(v > 0 for v in ns["errors"].values())
+
+
+def test_own_data_notebook(tiny_checkpoints, tmp_path, monkeypatch):
+    monkeypatch.setenv("GGNS_CHECKPOINT", str(tiny_checkpoints["GGNS"]))
+    monkeypatch.setenv("GGNS_DATA_PRESET", "plate_tiny")
+    monkeypatch.setenv("GGNS_SCHEDULE", "every:2")
+    monkeypatch.setenv("GGNS_OUTPUT", str(tmp_path))
+    ns = run_notebook("own_data.ipynb")
+    assert not ns["observed"].has_ground_truth and ns["known"].has_ground_truth
+    assert ns["predicted"].shape == ns["simulated"].positions.shape and ns["label"] == "GGNS (every:2)"
+    assert ns["metrics"]["rollout_mse_k2"][0] > 0
+    assert (tmp_path / "own_data.png").read_bytes()[:4] == b"\x89PNG"
+    assert [p.name for p in ns["pvd"]] == ["GGNS.pvd", "points.pvd"] and not (tmp_path / "paraview" / "truth").exists()
+    back = read_predictions(tmp_path / "predictions.h5")
+    assert np.array_equal(back.positions[0], ns["predicted"]) and back.schedule == "every:2"
+    assert len(SplitReader(tmp_path / "own.h5")) == 1
 
 
 def test_sweep_tables_notebook(tmp_path, monkeypatch):

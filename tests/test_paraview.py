@@ -57,6 +57,16 @@ def test_rollout_series_and_collections(tmp_path):
     assert (n, c) == (2, 2) and set(arrays["types"]) == {VTK_VERTEX}
 
 
+def test_rollout_without_ground_truth_writes_the_predictions_alone(tmp_path):
+    """A trajectory built from a user's arrays without true positions: no truth series, no error."""
+    positions, cells = box_tet_mesh((0, 0, 0), (1, 1, 1), 1)
+    pred = np.stack([positions + [0, 0, 0.1 * t] for t in range(3)])
+    assert [p.name for p in write_rollout(tmp_path, cells, None, {"GGNS": pred})] == ["GGNS.pvd"]
+    _, _, points, arrays = read_vtu(tmp_path / "GGNS" / "0001.vtu")
+    np.testing.assert_allclose(points, pred[1])
+    assert "error" not in arrays and not (tmp_path / "truth").exists()
+
+
 def test_bad_input_is_refused_and_leaves_no_file(tmp_path):
     positions, cells = box_tet_mesh((0, 0, 0), (1, 1, 1), 1)
     bad = positions.copy()

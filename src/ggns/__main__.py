@@ -3,7 +3,10 @@
     fit, validate, test, predict
               the Lightning CLI for the simulators (`python -m ggns fit --help`; see ggns.cli)
     generate  simulate and observe dataset splits into HDF5 files
+    import-reference
+              one split of the paper authors' datasets (their pickles) as an HDF5 split file
     geometry  measure a generated dataset's scale against the paper's radii, noise and point count
+    rollout   roll out a checkpoint (pretrained name or .ckpt) on a split file into a predictions file
     sweep     multi-seed sweeps of model configs
     bench     benchmarks (`bench sim`: simulator and dataset generation speed;
               `bench solvers`: the simulator's dense and sparse linear solvers on a 3D block;
@@ -28,11 +31,12 @@ def main(argv: list[str] | None = None) -> None:
         # imported here: Lightning takes seconds to import, and the other commands do not need it
         from pytorch_lightning.utilities.exceptions import SIGTERMException
 
+        from .checkpoints import CheckpointError
         from .cli import CheckpointMismatchError, build_cli
 
         try:
             build_cli(argv)  # None: LightningCLI reads sys.argv itself
-        except CheckpointMismatchError as error:
+        except (CheckpointMismatchError, CheckpointError) as error:
             print(f"error: {error}", file=sys.stderr)
             raise SystemExit(2) from None
         except SIGTERMException:

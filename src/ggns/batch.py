@@ -28,7 +28,7 @@ class TrajectoryBatch:
     edges: Tensor  # [2, sumE] directed mesh edges (both directions), global indices
     fixed: Tensor  # [sumN] bool, Dirichlet nodes
     mesh_batch: Tensor  # [sumN] long, trajectory of each node
-    positions: Tensor  # [T, sumN, d] true mesh positions
+    positions: Tensor  # [T, sumN, d] true mesh positions (initial state repeated where ground_truth is False)
     collider: Tensor | None  # [T, sumK, d] collider vertices, None when no trajectory has any
     collider_batch: Tensor | None  # [sumK] long
     points: list[Tensor]  # T x [P_t, d], point clouds of all trajectories at step t
@@ -37,6 +37,8 @@ class TrajectoryBatch:
     cells: Tensor  # [sumC, d+1] long, global node indices
     node_offsets: tuple[int, ...]  # B+1 host ints: trajectory b owns nodes node_offsets[b]:node_offsets[b+1]
     cell_offsets: tuple[int, ...]  # B+1 host ints, likewise for cells
+    ground_truth: tuple[bool, ...]  # B host flags: positions[1:] of trajectory b are true (`has_ground_truth`)
+    material_known: tuple[bool, ...]  # B host flags: material[b] is the material's (`Trajectory.material_known`)
 
     @property
     def num_graphs(self) -> int:
@@ -45,6 +47,20 @@ class TrajectoryBatch:
     @property
     def num_steps(self) -> int:
         return int(self.positions.shape[0])
+
+    def require_ground_truth(self, what: str) -> None:
+        """ValueError naming the trajectories without true positions: `what` (metrics, teacher forcing) needs them."""
+        missing = [b for b, known in enumerate(self.ground_truth) if not known]
+        if missing:
+            raise ValueError(f"{what} needs the true positions, but trajectory(ies) {missing} of the batch have none "
+                             f"(built without true_positions: only the initial state and the fixed nodes are known)")
+
+    def require_material(self, what: str) -> None:
+        """ValueError naming the trajectories whose Poisson's ratio is a placeholder: `what` needs the material."""
+        missing = [b for b, known in enumerate(self.material_known) if not known]
+        if missing:
+            raise ValueError(f"{what} is told the material (Poisson's ratio), but trajectory(ies) {missing} of the "
+                             f"batch were built without poissons_ratio; give it, or use a model that infers it (GGNS)")
 
     @property
     def device(self) -> torch.device:
@@ -99,4 +115,6 @@ class TrajectoryBatch:
             cells=cat([t.cells + o for t, o in zip(trajs, n)], torch.long),
             node_offsets=tuple(int(i) for i in n),
             cell_offsets=tuple(int(i) for i in c),
+            ground_truth=tuple(t.has_ground_truth for t in trajs),
+            material_known=tuple(t.material_known for t in trajs),
         )

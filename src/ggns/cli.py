@@ -5,7 +5,9 @@ Any `GraphSimulator` subclass is a model (`--model ggns.models.simulators.GGNS` 
 (so `${...}` interpolation works), the run's full config is saved next to its TensorBoard logs
 (runs without a logger save none),
 and `--ckpt_path` resumes a fit or picks the checkpoint to test (the model then takes the
-checkpoint's hyperparameters, except the evaluation settings `EVALUATION_ARGS`). Nothing given is
+checkpoint's hyperparameters, except the evaluation settings `EVALUATION_ARGS`); `--ckpt_path
+pretrained:plate/ggns` (or the shipped file's path) takes a shipped simulator, verified against its
+manifest and refused for data of another scene (`ggns.pretrained`). Nothing given is
 silently dropped for the checkpoint's: a checkpoint of another model class than the config's is
 refused, and so is a model argument given on the command line that the checkpoint would replace
 by a different value (`CheckpointMismatchError`). A trainer with a logger also logs the learning
@@ -24,8 +26,10 @@ from pytorch_lightning.cli import LightningCLI, SaveConfigCallback
 from pytorch_lightning.trainer.states import TrainerFn
 from pytorch_lightning.utilities.exceptions import SIGTERMException
 
+from .config import load_config
 from .data.module import SimulationDataModule
 from .models.simulators import GraphSimulator
+from .pretrained import PREFIX, check_data, checkpoint_path, shipped_name
 
 # Evaluation settings, not part of a trained model: with --ckpt_path they still come from the command
 # line and config (Lightning replaces every other model argument by the checkpoint's hyperparameters).
@@ -90,6 +94,7 @@ class SimulatorCLI(LightningCLI):
         subcommand = self.config.get("subcommand")
         if not subcommand or not self.config[subcommand].get("ckpt_path"):
             return super()._parse_ckpt_path()
+        self._check_pretrained(subcommand)
         model = self.config[subcommand].model
         init_args = model.get("init_args")
         asked_class = model.get("class_path")
@@ -112,6 +117,18 @@ class SimulatorCLI(LightningCLI):
                 f" (only the evaluation settings {list(EVALUATION_ARGS)} can change at test time)")
         for key, value in kept.items():
             self.config[subcommand].model.init_args[key] = value
+
+    def _check_pretrained(self, subcommand: str) -> None:
+        """`--ckpt_path pretrained:<task>/<model>` (or a shipped file's path): the verified shipped file
+        (`ggns.pretrained.verify`), refused for data of another scene than it was trained on."""
+        given = str(self.config[subcommand].ckpt_path)
+        name = given.removeprefix(PREFIX) if given.startswith(PREFIX) else shipped_name(given)
+        if name is None:
+            return
+        self.config[subcommand].ckpt_path = str(checkpoint_path(name))
+        data = self.config[subcommand].get("data") or {}
+        dataset = (data.get("init_args") or data).get("dataset") or "plate_small"
+        check_data(name, load_config(dataset), source=f"data preset {dataset!r}")
 
 
 def _differ(given, stored) -> bool:

@@ -50,6 +50,41 @@ def generate(*overrides: str, config: str = "plate", split: Sequence[Split] | No
     return paths
 
 
+def import_reference(*overrides: str, input: str, config: str = "reference_plate", split: Split | None = None,
+                     output: str | None = None, fixed: str | None = None, youngs_modulus: float | None = None,
+                     steps: int | None = None, overwrite: bool = False) -> Path:
+    """Import one split of the paper authors' datasets (jlinki/GGNS pickles) as an HDF5 split file.
+
+    The pickle is read as data only (numpy arrays and containers; anything else is refused). See
+    docs/dataset_format.md, "Importing the authors' pickles", for what each key becomes.
+
+    Args:
+        overrides: preset overrides as key=value, e.g. importer.fixed_tolerance=1e-5 (a key the preset lacks is an error)
+        input: the authors' pickle, e.g. deformable_plate_dataset_train.pkl (a list with one dict per trajectory)
+        config: data preset of the imported dataset, reference_plate, reference_tissue, reference_cavity or a YAML path
+        split: the split the file becomes (default: from the file name, _train, _eval as val, _test)
+        output: output directory, gets <split>.h5 (default: the preset's)
+        fixed: fixed mesh nodes, e.g. 0-29 (default: inferred as the nodes that never move)
+        youngs_modulus: E in Pa of every trajectory (default: the preset's, by Poisson's ratio; the cavity needs it)
+        steps: keep the first n states of every trajectory (default: all)
+        overwrite: replace an existing split file
+    """
+    from .config import load_config
+    from .data.reference import import_reference as convert, split_from_name
+
+    preset = load_config(config, list(overrides))
+    if "importer" not in preset:
+        raise ValueError(f"--config {config}: not a preset of imported data (it has no importer section; "
+                         "see conf/data/reference_plate.yaml)")
+    for key, value in (("fixed", fixed), ("youngs_modulus", youngs_modulus), ("steps", steps)):
+        if value is not None:
+            preset["importer"][key] = value
+    summary = convert(input, preset, split or split_from_name(input), output, overwrite=overwrite)
+    ranges = (f"{name} {lo:g}" + (f"-{hi:g}" if hi != lo else "") for name, (lo, hi) in summary["sizes"].items())
+    print(f"{summary['path']}: {summary['trajectories']} trajectories; {', '.join(ranges)}")
+    return summary["path"]
+
+
 def geometry(dataset: str = "plate_small", split: Split = "train", trajectories: int = 27, stride: int = 5,
              targets: str = "plate") -> bool:
     """Measure a generated dataset's scale (points, neighbours, edges, motion) against the targets.
@@ -179,7 +214,7 @@ def bench_learning(*overrides: str, config: str = "plate_ggns", minutes: float |
 def export(checkpoint: str, dataset: str = "plate_small", data_dir: str | None = None,
            split: Literal["train", "val", "test"] = "test", trajectory: int = 0, schedule: str = "every:1",
            output: str = "lightning_logs/export") -> list[Path]:
-    """Write one trajectory's ground truth, a checkpoint's rollout and the point clouds as ParaView files.
+    """Write one trajectory's truth (when known), a checkpoint's rollout and the point clouds as ParaView files.
 
     Args:
         checkpoint: the model checkpoint (.ckpt) whose rollout is written
@@ -205,7 +240,8 @@ def export(checkpoint: str, dataset: str = "plate_small", data_dir: str | None =
     preds, points = rollout_series(TrajectoryBatch.from_trajectories([chosen]), {type(model).__name__: model},
                                    parse_schedule(schedule))
     names = {re.sub(r"[^\w.+-]+", "_", label).strip("_"): x for label, x in preds.items()}
-    paths = write_rollout(output, chosen.cells, chosen.positions, names, points,
+    truth = chosen.positions if chosen.has_ground_truth else None  # a trajectory of your own may have none
+    paths = write_rollout(output, chosen.cells, truth, names, points,
                           frame_dt=float(chosen.params.get("frame_dt", 1.0)))
     for path in paths:
         print(path)
@@ -261,6 +297,53 @@ def diagnose(checkpoint: str, dataset: str = "tissue_cpu", data_dir: str | None 
     return table
 
 
+def rollout(checkpoint: str, input: str, output: str = "predictions.h5", trajectories: Sequence[int] | None = None,
+            schedule: str = "every:1", batch_size: int = 8, device: Literal["cpu", "cuda"] = "cpu",
+            overwrite: bool = False) -> Path:
+    """Roll out a checkpoint on the trajectories of a split file and write the predictions file.
+
+    Args:
+        checkpoint: a pretrained model's name (e.g. plate/ggns) or a .ckpt path
+        input: split file (docs/dataset_format.md), generated or written from your own arrays
+        output: the predictions file written (docs/dataset_format.md, "Predictions files")
+        trajectories: indices of the input's trajectories rolled out (default: all)
+        schedule: point-cloud schedule, every:K, first:M or never (a model without point clouds runs never)
+        batch_size: trajectories rolled out at once
+        device: where the model runs
+        overwrite: replace an existing output file
+    """
+    from .checkpoints import sha256
+    from .data.predictions import Predictions, write_predictions
+    from .data.schema import SplitReader
+    from .evaluation.predict import check_model_fits, rollout_trajectories
+    from .evaluation.schedules import effective_schedule, parse_schedule
+    from .pretrained import check_data, load_model
+
+    if Path(output).exists() and not overwrite:
+        raise FileExistsError(f"{output}: already exists (--overwrite replaces it)")
+    plan = parse_schedule(schedule)
+    with SplitReader(input) as split:
+        chosen = list(range(len(split))) if trajectories is None else list(trajectories)
+        outside = [i for i in chosen if not 0 <= i < len(split)]
+        if outside or not chosen:
+            raise ValueError(f"--trajectories {outside or chosen}: {input} holds trajectories 0..{len(split) - 1}")
+        model = load_model(checkpoint, map_location=device)
+        manifest = getattr(model, "manifest", None)  # set on shipped (pretrained) simulators
+        check_model_fits(model, split.dim, split.scene, task=manifest["task"] if manifest else None)
+        if manifest:
+            check_data(manifest["name"], split.generator_config or None, split.dim, source=str(input))
+        inputs = [split[i] for i in chosen]
+        scene = split.scene
+    plan = effective_schedule(plan, model.uses_points)
+    positions = rollout_trajectories(model, inputs, plan, batch_size)
+    path = write_predictions(output, Predictions(
+        positions=positions, inputs=inputs, model_class=type(model).__name__, schedule=str(plan),
+        checkpoint=checkpoint, checkpoint_sha256=manifest["sha256"] if manifest else sha256(checkpoint),
+        input_file=str(Path(input).resolve()), input_indices=chosen, scene=scene), overwrite=overwrite)
+    print(f"{path}: {len(inputs)} rollouts of {type(model).__name__} ({checkpoint}) under {plan}")
+    return path
+
+
 def sweep(*overrides: str, config: str = "plate", task: int | None = None, slurm: str | None = None,
           aggregate_only: bool = False) -> None:
     """Multi-seed sweep of model configs (fit + test per run, resumable), then baselines and summary.
@@ -287,30 +370,75 @@ def sweep(*overrides: str, config: str = "plate", task: int | None = None, slurm
         summarize(spec)
 
 
-def demo(output: str = "lightning_logs/demo", preset: str = "plate_small", minutes: float = 4.0,
-         test_trajectories: int = 9, models: Sequence[str] = ("ggns", "mgn")) -> Path:
-    """The README's main job on a small default: generate, train, test, report.
+def pretrained_list() -> list[str]:
+    """The shipped pretrained simulators, their training data, steps and test metric."""
+    from .pretrained import manifest, names
+
+    shipped = names()
+    for name in shipped:
+        m = manifest(name)
+        family = m["source"]["family"]
+        metric = m["test"]["metrics"].get(f"rollout_mse_{family}", {}).get("mean")
+        print(f"{name:14s} {m['class']:6s} {m['bytes'] / 1024:5.0f} KB  data {m['data']['preset']:10s} "
+              f"{m['source']['global_step']:6d} steps  test rollout_mse_{family} {metric:.3e} "
+              f"({m['test']['trajectories']} trajectories)")
+    return shipped
+
+
+def pretrained_train(name: str, output: str | None = None) -> None:
+    """Train (or resume) the CPU-preset run a shipped simulator is cut from (conf/pretrained.yaml).
 
     Args:
-        output: where the report, pictures and TensorBoard runs go
-        preset: data preset (conf/data/)
-        minutes: wall-clock training budget per model
-        test_trajectories: test trajectories evaluated per model
-        models: model configs of conf/plate/
+        name: the entry, e.g. plate/ggns
+        output: folder of the sweep runs (default: the spec's)
+    """
+    from .experiments.pretrain import load_spec, train
+
+    spec = load_spec()
+    train(name, {**spec, "output": output or spec["output"]})
+
+
+def pretrained_package(name: str, output: str | None = None) -> Path:
+    """Cut a finished run's checkpoint into src/ggns/pretrained/, evaluate it and write its manifest.
+
+    Args:
+        name: the entry, e.g. plate/ggns
+        output: folder of the sweep runs (default: the spec's)
+    """
+    from .experiments.pretrain import load_spec, package
+
+    spec = load_spec()
+    return package(name, {**spec, "output": output or spec["output"]})
+
+
+def demo(task: Literal["plate", "tissue"] = "plate", output: str = "lightning_logs/demo", minutes: float | None = None,
+         test_trajectories: int | None = None, data: str | None = None, train: bool = True) -> Path:
+    """The README's main job (conf/demo/<task>.yaml): the pretrained GGNS, MGN and MGN(M) on test
+    trajectories generated here, pictures, and GGNS trained from scratch for a few minutes.
+
+    Args:
+        task: plate (the default, about 5 minutes on 2 cores) or tissue
+        output: the report, pictures and logs go to <output>/<task>/
+        minutes: from-scratch training budget (default: the task's; 0 skips the training)
+        test_trajectories: test trajectories evaluated (default: the task's)
+        data: another data preset of the same scene (default: the task's)
+        train: train GGNS from scratch after the evaluation
     """
     from .demo import run_demo
 
-
-    return run_demo(output, preset=preset, minutes=minutes, models=tuple(models), test_trajectories=test_trajectories)
+    return run_demo(task, output, minutes=minutes, test_trajectories=test_trajectories, data=data, train=train)
 
 
 COMMANDS = {
     "generate": generate,
+    "import-reference": import_reference,
     "geometry": geometry,
     "bench": {"sim": bench_sim, "solvers": bench_solvers, "models": bench_models, "tradeoff": bench_tradeoff,
               "learning": bench_learning},
     "export": export,
+    "rollout": rollout,
     "diagnose": diagnose,
     "sweep": sweep,
+    "pretrained": {"list": pretrained_list, "train": pretrained_train, "package": pretrained_package},
     "demo": demo,
 }

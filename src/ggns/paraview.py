@@ -1,7 +1,7 @@
 """Rollouts as files ParaView opens: VTK XML unstructured grids (.vtu, ASCII) per step, gathered
 over time by a ParaView collection (.pvd) per series.
 
-`write_rollout` writes, for one trajectory, the ground truth, each prediction (with its per-node
+`write_rollout` writes, for one trajectory, the ground truth (when known), each prediction (with its per-node
 error against the truth as point data) and the point clouds (as vertex cells), e.g.
 `truth.pvd`, `GGNS.pvd`, `points.pvd`: open the .pvd files in ParaView and play the time steps.
 2D meshes are written in the plane z = 0. No dependency beyond numpy (the format is plain XML).
@@ -81,27 +81,32 @@ def write_rollout(directory: str | Path, cells, truth, predictions: Mapping[str,
                   points: Sequence | None = None, frame_dt: float = 1.0) -> list[Path]:
     """The truth [T, N, d] and each prediction {name: [T, N, d]} as one .vtu per step plus a .pvd per
     series in `directory`, predictions with point data "error" (the distance to the true node); point
-    clouds (T entries [P_t, d], None for none) as vertex cells in `points.pvd`. Returns the .pvd paths."""
+    clouds (T entries [P_t, d], None for none) as vertex cells in `points.pvd`. Returns the .pvd paths.
+    truth None (a trajectory whose true positions are unknown): the predictions alone, without error."""
     directory = Path(directory)
-    truth = np.asarray(truth, dtype=np.float64)
-    series = {"truth": truth, **{str(k): np.asarray(v.detach().cpu() if hasattr(v, "detach") else v, dtype=np.float64)
-                                 for k, v in (predictions or {}).items()}}
+    series = {str(k): np.asarray(v.detach().cpu() if hasattr(v, "detach") else v, dtype=np.float64)
+              for k, v in (predictions or {}).items()}
+    if truth is not None:
+        series = {"truth": np.asarray(truth, dtype=np.float64), **series}
+    if not series:
+        raise ValueError("nothing to write: no truth and no predictions")
+    first = next(iter(series.values()))
     for name, positions in series.items():
-        if positions.shape != truth.shape:
-            raise ValueError(f"series {name!r} has shape {positions.shape}, the truth {truth.shape}")
+        if positions.shape != first.shape:
+            raise ValueError(f"series {name!r} has shape {positions.shape}, {next(iter(series))!r} {first.shape}")
         if not re.fullmatch(r"[\w.+-]+", name):
             raise ValueError(f"series name {name!r}: letters, digits and _ . + - only (it names files)")
-    times = [t * frame_dt for t in range(len(truth))]
+    times = [t * frame_dt for t in range(len(first))]
     written = []
     for name, positions in series.items():
         files = []
         for t, x in enumerate(positions):
-            data = {} if name == "truth" else {"error": np.linalg.norm(x - truth[t], axis=1)}
+            data = {} if name == "truth" or truth is None else {"error": np.linalg.norm(x - series["truth"][t], axis=1)}
             files.append(write_vtu(directory / name / f"{t:04d}.vtu", x, cells, data).relative_to(directory))
         written.append(write_collection(directory / f"{name}.pvd", files, times))
     if points is not None:
-        if len(points) != len(truth):
-            raise ValueError(f"points has {len(points)} entries, expected one per step ({len(truth)})")
+        if len(points) != len(first):
+            raise ValueError(f"points has {len(points)} entries, expected one per step ({len(first)})")
         files, shown = [], []
         for t, cloud in enumerate(points):
             if cloud is None or len(cloud) == 0:

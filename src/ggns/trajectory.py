@@ -12,6 +12,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# `params` keys a trajectory built from a user's arrays sets (`ggns.data.observations`); absent means True.
+GROUND_TRUTH = "ground_truth"  # False: positions[1:] are not known (filled with the initial state, fixed nodes stay)
+MATERIAL_KNOWN = "poissons_ratio_known"  # False: poissons_ratio is a placeholder (0.0), not the material's
+
 
 def pack_point_clouds(clouds: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Per-step point clouds [P_t, d] -> (`points` [P, d] float32, `point_offsets` [T+1] int64) as a
@@ -45,6 +49,16 @@ class Trajectory:
     @property
     def dim(self) -> int:
         return int(self.rest_positions.shape[1])
+
+    @property
+    def has_ground_truth(self) -> bool:
+        """Whether `positions` are the true states (False: only step 0 and the fixed nodes are known)."""
+        return bool(self.params.get(GROUND_TRUTH, True))
+
+    @property
+    def material_known(self) -> bool:
+        """Whether `poissons_ratio` is the material's (False: a placeholder; only models told the material need it)."""
+        return bool(self.params.get(MATERIAL_KNOWN, True))
 
     def point_cloud(self, t: int) -> np.ndarray:
         """The point cloud at step t, [P_t, d]."""

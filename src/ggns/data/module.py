@@ -9,8 +9,10 @@ Batches are `TrajectoryBatch`es (moved to the model's device by Lightning throug
 The dataset is named by a data preset (conf/data/<name>.yaml or a YAML path): its `output`
 directory holds <split>.h5. Missing splits are generated from the preset in `prepare_data`
 when `generate_missing` is set; otherwise a FileNotFoundError says how to generate them. A
-split file generated with another scene, solver or sensor configuration than the preset's is
-refused (`schema.read_trajectories`), never mixed in silently.
+preset with an `importer` section (conf/data/reference_*.yaml) names imported data (the paper
+authors' datasets, `ggns.data.reference`): it is never generated, and a missing split names the
+import command. A split file generated with another scene, solver or sensor configuration than
+the preset's is refused (`schema.read_trajectories`), never mixed in silently.
 """
 from __future__ import annotations
 
@@ -34,6 +36,10 @@ class WindowDataset(Dataset):
     def __init__(self, trajectories: list[Trajectory], window: int):
         if window < 1:
             raise ValueError(f"window must be >= 1 transitions, got {window}")
+        unknown = [i for i, t in enumerate(trajectories) if not t.has_ground_truth]
+        if unknown:
+            raise ValueError(f"trajectories {unknown[:5]} have no ground truth (built without true_positions): "
+                             f"nothing to train or validate on")
         short = [i for i, t in enumerate(trajectories) if t.num_steps < window + 1]
         if short:
             raise ValueError(f"trajectories {short[:5]} have fewer than window + 1 = {window + 1} states")
@@ -92,6 +98,7 @@ class SimulationDataModule(pl.LightningDataModule):
         self.train_window, self.num_workers = train_window, num_workers
         self.max_eval_trajectories = max_eval_trajectories
         self.generate_missing = generate_missing
+        self.imported = "importer" in self.config  # the authors' data, imported: nothing to generate
         self._trajectories: dict[str, list[Trajectory]] = {}
 
     def path(self, split: str) -> Path:
@@ -99,7 +106,7 @@ class SimulationDataModule(pl.LightningDataModule):
 
     def prepare_data(self) -> None:
         missing = [s for s in SPLITS if not self.path(s).exists()]
-        if missing and self.generate_missing:
+        if missing and self.generate_missing and not self.imported:
             generate({**self.config, "output": str(self.data_dir)}, missing)
 
     def trajectories(self, split: str) -> list[Trajectory]:
@@ -108,6 +115,10 @@ class SimulationDataModule(pl.LightningDataModule):
             raise ValueError(f"unknown split {split!r}; expected one of {SPLITS}")
         if split not in self._trajectories:
             path = self.path(split)
+            if not path.exists() and self.imported:
+                raise FileNotFoundError(
+                    f"{path}: split file missing; import it with `python -m ggns import-reference --config "
+                    f"{self.hparams.dataset} --split {split} --output {self.data_dir} --input <the authors' pickle>`")
             if not path.exists():
                 raise FileNotFoundError(
                     f"{path}: split file missing; generate it with `python -m ggns generate --config "

@@ -124,8 +124,67 @@ def validate_trajectory(traj: Trajectory, dim: int) -> None:
                              f"got {d.dtype} {list(d.shape)}")
 
 
+class AtomicHDF5:
+    """An HDF5 file written whole or not at all: `open` creates a hidden temporary file beside `path`
+    (`.<name>.partial-<pid>`) with the root attribute `created`; `commit` sets `complete = True`
+    (the last write), fsyncs and moves it onto `path` with `os.replace`; `discard` removes it. As a
+    context manager (`with AtomicHDF5(path) as f:`) it commits on a clean exit and discards on an
+    exception, so an existing file at `path` is never damaged. Split and predictions files are
+    written through it."""
+
+    def __init__(self, path: str | os.PathLike, overwrite: bool = False) -> None:
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path}: already exists (overwrite=True replaces it)")
+        self._tmp = self.path.with_name(f".{self.path.name}.partial-{os.getpid()}")
+        self.file: h5py.File | None = None
+
+    def open(self) -> h5py.File:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.file = h5py.File(self._tmp, "w", track_order=True)
+        try:
+            self.file.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        except BaseException:
+            self.discard()
+            raise
+        return self.file
+
+    def commit(self) -> None:
+        f, self.file = self.file, None
+        try:
+            f.attrs["complete"] = True  # last write: marks the file whole
+            f.flush()
+            f.close()
+            _fsync(self._tmp)
+            os.replace(self._tmp, self.path)
+            _fsync(self.path.parent)
+        except BaseException:
+            self._discard(f)
+            raise
+
+    def discard(self) -> None:
+        f, self.file = self.file, None
+        self._discard(f)
+
+    def _discard(self, f: h5py.File | None) -> None:
+        try:
+            if f is not None:
+                f.close()
+        finally:
+            self._tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> h5py.File:
+        return self.open()
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.commit()
+        else:
+            self.discard()
+
+
 class SplitWriter:
-    """Write one split file atomically; use as a context manager.
+    """Write one split file atomically (`AtomicHDF5`); use as a context manager.
 
     >>> with SplitWriter("data/plate/train.h5", scene="plate", split="train", dim=2,
     ...                  generator_config=cfg) as w:
@@ -139,30 +198,24 @@ class SplitWriter:
     def __init__(self, path: str | os.PathLike, *, scene: str, split: str, dim: int,
                  generator_config: dict, overwrite: bool = False) -> None:
         self.path = Path(path)
-        if self.path.exists() and not overwrite:
-            raise FileExistsError(f"{self.path}: already exists (overwrite=True replaces it)")
+        self._atomic = AtomicHDF5(self.path, overwrite)
         if dim not in (2, 3):
             raise ValueError(f"dim must be 2 or 3, got {dim}")
         self.scene, self.split, self.dim = scene, split, dim
         self._config = json.dumps(generator_config)
-        self._tmp = self.path.with_name(f".{self.path.name}.partial-{os.getpid()}")
-        self._file: h5py.File | None = None
         self._count = 0
 
     def __enter__(self) -> SplitWriter:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        f = h5py.File(self._tmp, "w", track_order=True)
+        f = self._atomic.open()
         try:
             a = f.attrs
             a["format"], a["schema_version"] = FORMAT, SCHEMA_VERSION
             a["scene"], a["split"], a["dim"] = self.scene, self.split, self.dim
             a["generator_config"] = self._config
-            a["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
             f.create_group("trajectories", track_order=True)
         except BaseException:
-            self._discard(f)
+            self._atomic.discard()
             raise
-        self._file = f
         return self
 
     def append(self, traj: Trajectory) -> int:
@@ -171,16 +224,16 @@ class SplitWriter:
         A trajectory that fails validation raises DatasetError; a failed append (for any
         reason) leaves nothing of the trajectory in the file.
         """
-        if self._file is None:
+        if self._atomic.file is None:
             raise RuntimeError("SplitWriter.append needs a `with SplitWriter(...)` block")
         i = self._count
         try:
             validate_trajectory(traj, self.dim)
         except ValueError as e:
             raise DatasetError(f"{self.path}: trajectory {i}: {e}") from None
-        group = self._file["trajectories"]
+        group = self._atomic.file["trajectories"]
         try:
-            self._write(group.create_group(f"{i:06d}"), traj)
+            write_trajectory_group(group.create_group(f"{i:06d}"), traj)
         except BaseException:
             if f"{i:06d}" in group:
                 del group[f"{i:06d}"]
@@ -188,46 +241,58 @@ class SplitWriter:
         self._count += 1
         return i
 
-    @staticmethod
-    def _write(g: h5py.Group, traj: Trajectory) -> None:
-        g.attrs["youngs_modulus"] = float(traj.youngs_modulus)
-        g.attrs["poissons_ratio"] = float(traj.poissons_ratio)
-        g.attrs["seed"] = int(traj.seed)
-        params = g.create_group("params", track_order=True)
-        for key, value in traj.params.items():
-            params.attrs[key] = value.item() if isinstance(value, np.generic) else value
-        for name, key, _, units, description in _ARRAYS:
-            ds = g.create_dataset(key, data=getattr(traj, name))
-            ds.attrs["description"] = description
-            if units:
-                ds.attrs["units"] = units
-        diagnostics = g.create_group("diagnostics", track_order=True)
-        for key, value in traj.diagnostics.items():
-            ds = diagnostics.create_dataset(key, data=np.asarray(value))
-            ds.attrs["description"] = "per-step simulator diagnostic [T]"
-
     def __exit__(self, exc_type, exc, tb) -> None:
-        f, self._file = self._file, None
         if exc_type is not None:
-            self._discard(f)
+            self._atomic.discard()
             return
         try:
-            f.attrs["num_trajectories"] = self._count
-            f.attrs["complete"] = True  # last write: marks the file whole
-            f.flush()
-            f.close()
-            _fsync(self._tmp)
-            os.replace(self._tmp, self.path)
-            _fsync(self.path.parent)
+            self._atomic.file.attrs["num_trajectories"] = self._count
         except BaseException:
-            self._discard(f)
+            self._atomic.discard()
             raise
+        self._atomic.commit()
 
-    def _discard(self, f: h5py.File) -> None:
-        try:
-            f.close()
-        finally:
-            self._tmp.unlink(missing_ok=True)
+
+def write_trajectory_group(g: h5py.Group, traj: Trajectory) -> None:
+    """Write `traj` (validated by the caller) into the empty group `g` in the layout of a trajectory
+    group (docs/dataset_format.md): attributes, `params`, the arrays, `diagnostics`."""
+    g.attrs["youngs_modulus"] = float(traj.youngs_modulus)
+    g.attrs["poissons_ratio"] = float(traj.poissons_ratio)
+    g.attrs["seed"] = int(traj.seed)
+    params = g.create_group("params", track_order=True)
+    for key, value in traj.params.items():
+        params.attrs[key] = value.item() if isinstance(value, np.generic) else value
+    for name, key, _, units, description in _ARRAYS:
+        ds = g.create_dataset(key, data=getattr(traj, name))
+        ds.attrs["description"] = description
+        if units:
+            ds.attrs["units"] = units
+    diagnostics = g.create_group("diagnostics", track_order=True)
+    for key, value in traj.diagnostics.items():
+        ds = diagnostics.create_dataset(key, data=np.asarray(value))
+        ds.attrs["description"] = "per-step simulator diagnostic [T]"
+
+
+def read_trajectory_group(g: h5py.Group) -> Trajectory:
+    """The trajectory in group `g` (`write_trajectory_group`'s layout), not validated yet (that is
+    `validate_trajectory`); DatasetError("lacks <what>") when a dataset, group or attribute is missing."""
+    for key in [k for _, k, _, _, _ in _ARRAYS]:
+        if key not in g:
+            raise DatasetError(f"lacks dataset {key}")
+    for key in ("params", "diagnostics"):
+        if key not in g:
+            raise DatasetError(f"lacks group {key}")
+    for key in ("youngs_modulus", "poissons_ratio", "seed"):
+        if key not in g.attrs:
+            raise DatasetError(f"lacks attribute {key}")
+    return Trajectory(
+        **{name: g[key][()] for name, key, _, _, _ in _ARRAYS},
+        youngs_modulus=float(g.attrs["youngs_modulus"]),
+        poissons_ratio=float(g.attrs["poissons_ratio"]),
+        seed=int(g.attrs["seed"]),
+        params={k: _python_scalar(v) for k, v in g["params"].attrs.items()},
+        diagnostics={k: ds[()] for k, ds in g["diagnostics"].items()},
+    )
 
 
 def _fsync(path: Path) -> None:
@@ -302,24 +367,9 @@ class SplitReader:
             raise IndexError(f"trajectory index {i} out of range for {self._len} trajectories")
         i %= self._len
         try:
-            g = self._h5()["trajectories"][f"{i:06d}"]
-            for key in [k for _, k, _, _, _ in _ARRAYS]:
-                if key not in g:
-                    raise self._error(f"trajectory {i} lacks dataset {key}")
-            for key in ("params", "diagnostics"):
-                if key not in g:
-                    raise self._error(f"trajectory {i} lacks group {key}")
-            for key in ("youngs_modulus", "poissons_ratio", "seed"):
-                if key not in g.attrs:
-                    raise self._error(f"trajectory {i} lacks attribute {key}")
-            traj = Trajectory(
-                **{name: g[key][()] for name, key, _, _, _ in _ARRAYS},
-                youngs_modulus=float(g.attrs["youngs_modulus"]),
-                poissons_ratio=float(g.attrs["poissons_ratio"]),
-                seed=int(g.attrs["seed"]),
-                params={k: _python_scalar(v) for k, v in g["params"].attrs.items()},
-                diagnostics={k: ds[()] for k, ds in g["diagnostics"].items()},
-            )
+            traj = read_trajectory_group(self._h5()["trajectories"][f"{i:06d}"])
+        except DatasetError as e:
+            raise self._error(f"trajectory {i} {e}") from None
         except (OSError, KeyError, RuntimeError):
             raise self._error(f"trajectory {i} is not readable (truncated or corrupt)") from None
         try:
@@ -399,3 +449,20 @@ def _lookup(config: dict, dotted: str):
             return "<absent>"
         config = config[key]
     return config
+
+
+def content_hash(path: str | os.PathLike) -> str:
+    """sha256 of a split file's content: every trajectory's arrays (`_ARRAYS`, in order, with their
+    shapes and dtypes), material and seed. Unlike the file's bytes it does not change with the
+    creation time or HDF5's layout, so the same generator config and seed give the same hash."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    with SplitReader(path) as reader:
+        for traj in reader:
+            for name, _, dtype, _, _ in _ARRAYS:
+                array = np.ascontiguousarray(getattr(traj, name), dtype=dtype)
+                digest.update(f"{name}{array.shape}{array.dtype.str}".encode())
+                digest.update(array.tobytes())
+            digest.update(repr((float(traj.youngs_modulus), float(traj.poissons_ratio), int(traj.seed))).encode())
+    return digest.hexdigest()

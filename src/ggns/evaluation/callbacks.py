@@ -3,7 +3,7 @@ checkpoint selection per metric family, `evaluation.selection`) and rollout pict
 TensorBoard. Both run at the end of every validation epoch (set how often with the Trainer's
 `check_val_every_n_epoch`), never during the sanity check, and roll out through the module's
 `evaluate` / `rollout`, i.e. the one engine. `TestedCheckpoint` names the checkpoint a `test`
-evaluated; `RolloutWriter` saves the rollouts of `predict`.
+evaluated; `RolloutWriter` writes the rollouts of `predict` as a predictions file.
 """
 from __future__ import annotations
 
@@ -14,11 +14,13 @@ from pathlib import Path
 from typing import Sequence
 
 import pytorch_lightning as pl
-import torch
 from pytorch_lightning.callbacks import BasePredictionWriter
 from pytorch_lightning.loggers import TensorBoardLogger
 
 from ..batch import TrajectoryBatch
+from ..checkpoints import sha256
+from ..data.predictions import Predictions, write_predictions
+from ..data.schema import SplitReader
 from ..reports import write_json, write_text
 from ..viz import figure_to_image
 from .evaluate import zero_motion_one_step_mse
@@ -127,7 +129,8 @@ class TestedCheckpoint(pl.Callback):
 class RolloutPictures(pl.Callback):
     """Adds a picture of ground truth vs. rollout (point clouds overlaid at the steps that used
     them) of validation trajectory `trajectory` to TensorBoard as `rollout/<split>_<index>` (3D
-    scenes: two views per model); other loggers than TensorBoard get nothing (with one warning)."""
+    scenes: two views per model); other loggers than TensorBoard, and meshes without cells (the
+    authors' 3D datasets), get nothing (with one warning)."""
 
     def __init__(self, schedule: str = "every:5", trajectory: int = 0, num_frames: int = 4, split: str = "val"):
         self.schedule = parse_schedule(schedule)
@@ -148,8 +151,13 @@ class RolloutPictures(pl.Callback):
             trajs = trainer.datamodule.trajectories(self.split)
             if not 0 <= self.trajectory < len(trajs):
                 raise IndexError(f"RolloutPictures: trajectory {self.trajectory} not in the {len(trajs)} {self.split} trajectories")
+            if not len(trajs[self.trajectory].cells):
+                warnings.warn(f"RolloutPictures: {self.split} trajectory {self.trajectory} has no cells (the authors' "
+                              "3D datasets hold none, docs/dataset_format.md); no pictures are logged", stacklevel=2)
             self._cache["batch"] = TrajectoryBatch.from_trajectories([trajs[self.trajectory]])
             self._cache["faces"] = trajs[self.trajectory].collider_faces
+        if not len(self._cache["batch"].cells):
+            return
         batch = self._cache["batch"].to(pl_module.device)
         fig = rollout_picture(batch, self._cache["faces"], {type(pl_module).__name__: pl_module}, self.schedule,
                               num_frames=self.num_frames, title=f"epoch {trainer.current_epoch}")
@@ -157,17 +165,37 @@ class RolloutPictures(pl.Callback):
                                     trainer.global_step, dataformats="HWC")
 
 
-
 class RolloutWriter(BasePredictionWriter):
-    """Saves what `predict` returns (per batch: the schedule, rollout positions [T, sumN, d] and
-    the node offsets of its trajectories) to `<log dir>/predictions.pt` with torch.save."""
+    """Writes what `predict` returns (per batch: the schedule, rollout positions [T, sumN, d] and the
+    node offsets of its trajectories) as a predictions file (`ggns.data.predictions`, documented in
+    docs/dataset_format.md) to `<log dir>/<filename>`: each rollout beside a copy of its test
+    trajectory, with the checkpoint (`--ckpt_path`) and its sha256, the model class, the schedule and
+    the test split file. An existing file is refused unless `overwrite`."""
 
-    def __init__(self, filename: str = "predictions.pt"):
+    def __init__(self, filename: str = "predictions.h5", overwrite: bool = False):
         super().__init__(write_interval="epoch")
-        self.filename = filename
+        self.filename, self.overwrite = filename, overwrite
+
+    def path(self, trainer: pl.Trainer) -> Path:
+        return Path(trainer.log_dir or ".") / self.filename
+
+    def on_predict_start(self, trainer: pl.Trainer, pl_module) -> None:
+        if self.path(trainer).exists() and not self.overwrite:  # refused before the rollouts, not after
+            raise FileExistsError(f"{self.path(trainer)}: already exists (RolloutWriter overwrite=True replaces it)")
 
     def write_on_epoch_end(self, trainer: pl.Trainer, pl_module, predictions, batch_indices) -> None:
-        directory = Path(trainer.log_dir or ".")
-        directory.mkdir(parents=True, exist_ok=True)
-        torch.save(predictions, directory / self.filename)
-        print(f"wrote {directory / self.filename}")
+        datamodule = trainer.datamodule
+        inputs = datamodule.trajectories("test")
+        positions = [p["positions"][:, a:b].numpy() for p in predictions
+                     for a, b in zip(p["node_offsets"][:-1], p["node_offsets"][1:])]
+        if len(positions) != len(inputs):
+            raise RuntimeError(f"RolloutWriter: {len(positions)} rollouts for {len(inputs)} test trajectories")
+        with SplitReader(datamodule.path("test")) as split:
+            scene = split.scene
+        checkpoint = str(trainer.ckpt_path or "")
+        path = write_predictions(self.path(trainer), Predictions(
+            positions=positions, inputs=inputs, model_class=type(pl_module).__name__,
+            schedule=predictions[0]["schedule"], checkpoint=checkpoint,
+            checkpoint_sha256=sha256(checkpoint) if checkpoint else "",
+            input_file=str(Path(datamodule.path("test")).resolve()), scene=scene), overwrite=self.overwrite)
+        print(f"wrote {path}")

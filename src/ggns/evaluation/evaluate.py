@@ -50,6 +50,7 @@ def evaluate_batch(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Connec
     `m_plus_10_stride`-th start m (1: all, the paper's metric)."""
     if m_plus_10_stride < 1:
         raise ValueError(f"m_plus_10_stride must be >= 1, got {m_plus_10_stride}")
+    batch.require_ground_truth("computing metrics")
     true = split_trajectories(batch.positions, batch)
     out: dict[str, list[float]] = {}
 
@@ -81,6 +82,7 @@ def evaluate_batch(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Connec
 def zero_motion_one_step_mse(batch: TrajectoryBatch) -> Tensor:
     """`one_step_mse` per trajectory (float64 [B]) of predicting no motion: S_t predicted as the true
     S_{t-1}, fixed nodes at their known positions (as `one_step_predictions` sets them)."""
+    batch.require_ground_truth("computing metrics")
     positions = batch.positions
     pred = torch.cat([positions[:1], torch.where(batch.fixed[:, None], positions[1:], positions[:-1])])
     return torch.tensor([one_step_mse(p[:, 1:], t[:, 1:])[0]

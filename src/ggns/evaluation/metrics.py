@@ -251,8 +251,9 @@ def tet_mesh_iou(pred_nodes, true_nodes, cells, method: str = "auto", samples: i
 
     Raises:
         ValueError: positions not both [N, 3] or non-finite (NaN/inf), cells not [C, 4] integer
-            indices of the N nodes, an unknown method or non-positive samples, "exact" requested
-            for a mesh it cannot handle, or both meshes covering zero volume (IoU undefined).
+            indices of the N nodes or none at all (C = 0), an unknown method or non-positive
+            samples, "exact" requested for a mesh it cannot handle, or both meshes covering zero
+            volume (IoU undefined).
     """
     if method not in IOU_METHODS:
         raise ValueError(f"method must be one of {IOU_METHODS}, got {method!r}")
@@ -266,6 +267,9 @@ def tet_mesh_iou(pred_nodes, true_nodes, cells, method: str = "auto", samples: i
     if pred.shape != true.shape:
         raise ValueError(f"pred_nodes {tuple(pred.shape)} and true_nodes {tuple(true.shape)} must have the same N")
     cells = check_cells(cells, len(pred), corners=4)
+    if not len(cells):
+        raise ValueError("volume IoU needs tetrahedra and this mesh has none (the authors' 3D datasets hold no "
+                         "volume cells, docs/dataset_format.md): test without it, --model.init_args.test_iou false")
     pred, true = pred.to(torch.float64).numpy(), true.to(torch.float64).numpy()
     reason = "requested"
     if method != "sampled":

@@ -47,6 +47,9 @@ def error_shares(pred, true, rest, cells, fixed) -> dict[str, float]:
     cells, fixed = np.asarray(cells, dtype=np.int64), np.asarray(fixed, dtype=bool)
     if cells.ndim != 2 or cells.shape[1] != 4:
         raise ValueError(f"cells must be tetrahedra [C, 4], got {cells.shape}")
+    if not len(cells):
+        raise ValueError("the surface is found from the tetrahedra and this mesh has none (the authors' 3D "
+                         "datasets hold no volume cells, docs/dataset_format.md)")
     if fixed.shape != (pred.shape[1],):
         raise ValueError(f"fixed must be [{pred.shape[1]}], got {fixed.shape}")
     facets = boundary_facets(cells, rest)

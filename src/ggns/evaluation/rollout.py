@@ -57,6 +57,7 @@ def one_step_predictions(step_fn: StepFn, batch: TrajectoryBatch, schedule: Sche
     """Teacher-forced predictions: state t+1 predicted from the *true* state t for every t, with the
     point clouds of `schedule` and any model state (an LSTM's) carried along the true trajectory.
     Returns [T, sumN, d]: index 0 is the true S_0, index t the prediction of S_t."""
+    batch.require_ground_truth("teacher-forced prediction")
     fixed = batch.fixed[:, None]
     out, state = [batch.positions[0]], None
     with torch.no_grad():

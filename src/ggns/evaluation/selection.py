@@ -60,10 +60,10 @@ def checkpoint_info(path: str | Path) -> dict:
     """What a checkpoint is: {"path", "name", "global_step", "epoch", "selected_on", "score"}, where
     selected_on / score are the monitored scalar and value of the ModelCheckpoint that wrote it as
     its best (matched by file name), or None (last.ckpt, a copied or renamed file)."""
-    import torch
+    from ..checkpoints import read_checkpoint
 
     path = Path(path)
-    checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    checkpoint = read_checkpoint(path)
     selected_on, score = None, None
     for key, state in checkpoint.get("callbacks", {}).items():
         best = state.get("best_model_path") if isinstance(state, dict) else None

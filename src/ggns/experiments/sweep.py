@@ -138,12 +138,12 @@ class Run(_Tested):
 
     def _eval_settings(self) -> tuple[list[str], bool]:
         """The fit's test settings from its checkpoint's hyperparameters: (eval_schedules, test_m_plus_10)."""
-        import torch
+        from ..checkpoints import read_checkpoint
 
         directory = self.fit_dir / "checkpoints"
         for path in [directory / "last.ckpt", *sorted(directory.glob("*.ckpt"))]:
             if path.is_file():
-                hparams = torch.load(path, map_location="cpu", weights_only=False)["hyper_parameters"]
+                hparams = read_checkpoint(path)["hyper_parameters"]
                 return list(hparams["eval_schedules"]), bool(hparams.get("test_m_plus_10", True))
         raise FileNotFoundError(f"{directory}: the fit of {self.model} seed {self.seed} left no checkpoint")
 

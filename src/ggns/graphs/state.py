@@ -64,9 +64,12 @@ def build_state_graph(batch: TrajectoryBatch, t: int, mesh_pos: Tensor, use_poin
                       connectivity: Connectivity, with_material: bool = False) -> HeteroData:
     """The batched model input for step t -> t+1 (0 <= t <= T-2): mesh at mesh_pos [sumN, d],
     collider at t with velocity to t+1, the point clouds at t of the trajectories whose
-    use_points (bool, or bool [B] per trajectory) is True, Poisson ratios if with_material."""
+    use_points (bool, or bool [B] per trajectory) is True, Poisson ratios if with_material (ValueError when
+    a trajectory's ratio is a placeholder, `TrajectoryBatch.require_material`)."""
     if not 0 <= t < batch.num_steps - 1:
         raise IndexError(f"graph step t={t} outside [0, {batch.num_steps - 2}] (needs the collider at t+1)")
+    if with_material:
+        batch.require_material("this model")
     points, point_batch = None, None
     if isinstance(use_points, Tensor):
         if use_points.shape != (batch.num_graphs,) or use_points.dtype != torch.bool:

@@ -32,6 +32,7 @@ from ..evaluation.evaluate import MetricTable, evaluate_batch, metrics_markdown
 from ..evaluation.rollout import rollout
 from ..evaluation.schedules import EveryK, Schedule, effective_schedule, parse_schedule
 from ..batch import TrajectoryBatch
+from ..checkpoints import CHECKPOINT_FORMAT, FORMAT_KEY, CheckpointError, check_format, read_checkpoint
 from ..graphs.connectivity import Connectivity, load_connectivity
 from ..graphs.state import state_graph
 from ..graphs.types import MESH_EDGE
@@ -296,8 +297,10 @@ class GraphSimulator(pl.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["connectivity"] = dataclasses.asdict(self.connectivity)
         checkpoint["simulator_class"] = type(self).__name__
+        checkpoint[FORMAT_KEY] = CHECKPOINT_FORMAT
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
+        check_format(checkpoint, "the checkpoint")
         saved = checkpoint.get("connectivity")
         if saved is not None and saved != dataclasses.asdict(self.connectivity):
             warnings.warn(f"connectivity preset {self.hparams.connectivity!r} changed since the checkpoint was "
@@ -363,24 +366,27 @@ MODELS = {"ggns": GGNS, "ggns_lstm": GGNSLSTM, "mgn": MGN, "mgn_m": MGNM, "mgn_s
 
 
 def load_simulator(path: str | Path, map_location=None) -> GraphSimulator:
-    """Any of the four simulators from a Lightning checkpoint written by this library, in eval
-    mode. The class is stored in the checkpoint ("simulator_class"); for checkpoints without it
-    the class whose parameters load strictly is used (their parameter sets differ)."""
-    checkpoint = torch.load(path, map_location=map_location, weights_only=False)
+    """Any of the simulators from a Lightning checkpoint written by this library, in eval mode, read
+    as data only (`ggns.checkpoints`: a file that would run code is refused with CheckpointError, and
+    so is one of another checkpoint format). The class is stored in the checkpoint
+    ("simulator_class"); for checkpoints without it the class whose parameters load strictly is used
+    (their parameter sets differ)."""
+    checkpoint = read_checkpoint(path, map_location="cpu")
+    check_format(checkpoint, path)
     classes = {cls.__name__: cls for cls in MODELS.values()}
     name = checkpoint.get("simulator_class")
     if name is not None:
         if name not in classes:
-            raise ValueError(f"{path}: unknown simulator_class {name!r} (known: {sorted(classes)})")
-        return classes[name].load_from_checkpoint(path, map_location=map_location).eval()
+            raise CheckpointError(f"{path}: unknown simulator_class {name!r} (known: {sorted(classes)})")
+        return classes[name].load_from_checkpoint(path, map_location=map_location, weights_only=True).eval()
     if "hyper_parameters" not in checkpoint or "state_dict" not in checkpoint:
-        raise ValueError(f"{path}: not a Lightning checkpoint of a ggns simulator")
+        raise CheckpointError(f"{path}: not a Lightning checkpoint of a ggns simulator")
     errors = []
     for cls in classes.values():
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                return cls.load_from_checkpoint(path, map_location=map_location, strict=True).eval()
+                return cls.load_from_checkpoint(path, map_location=map_location, strict=True, weights_only=True).eval()
         except (RuntimeError, KeyError, TypeError, ValueError) as error:
             errors.append(f"{cls.__name__}: {str(error).splitlines()[0][:120]}")
-    raise ValueError(f"{path}: no simulator class loads this checkpoint ({'; '.join(errors)})")
+    raise CheckpointError(f"{path}: no simulator class loads this checkpoint ({'; '.join(errors)})")

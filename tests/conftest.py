@@ -132,3 +132,41 @@ def quiet_trainer(root, **kwargs):
     return pl.Trainer(**{**dict(max_epochs=1, limit_train_batches=1, limit_val_batches=0, logger=False,
                                 enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
                                 default_root_dir=root, accelerator="cpu"), **kwargs})
+
+
+# ---- a tiny pretrained registry (test_pretrained, test_demo) -----------------------------------------
+TINY_MODELS = {"ggns": ("conf/plate/ggns.yaml", "k1"), "mgn": ("conf/plate/mgn.yaml", "never"),
+               "mgn_m": ("conf/plate/mgn_m.yaml", "never")}
+
+
+@pytest.fixture(scope="session")
+def tiny_registry(cli_data, tmp_path_factory):
+    """Three simulators (tiny/ggns, tiny/mgn, tiny/mgn_m) trained for one epoch on the cli_data preset by
+    `ggns.experiments.pretrain.train` (the real fit command, a subprocess) and packaged by `package`
+    into a temporary registry; returns (registry directory, spec)."""
+    from ggns import pretrained
+    from ggns.config import CONF_DIR
+    from ggns.experiments.pretrain import package, train
+
+    root = tmp_path_factory.mktemp("registry")
+    sweep = root / "tiny_sweep.yaml"
+    args = ["--data.dataset", str(cli_data / TINY12), "--data.batch_size", "8", "--trainer.max_epochs", "1",
+            "--trainer.check_val_every_n_epoch", "1",
+            "--trainer.enable_progress_bar", "false", "--model.init_args.latent", "8",
+            "--model.init_args.blocks", "1", "--data.max_eval_trajectories", "2"]
+    models = {name: {"config": str(CONF_DIR.parent / config), "args": args} for name, (config, _) in TINY_MODELS.items()}
+    import json
+    sweep.write_text(json.dumps({"output": str(root / "runs"), "seeds": [0], "models": models}))
+    spec = {"output": str(root / "runs"), "test_trajectories": 2,
+            "entries": {f"tiny/{name}": {"sweep": str(sweep), "model": name, "family": family}
+                        for name, (_, family) in TINY_MODELS.items()}}
+    registry = root / "pretrained"
+    saved = pretrained.REGISTRY
+    pretrained.REGISTRY = registry
+    try:
+        for name in spec["entries"]:
+            train(name, spec)
+            package(name, spec)
+    finally:
+        pretrained.REGISTRY = saved
+    return registry, spec

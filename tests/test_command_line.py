@@ -132,7 +132,8 @@ def test_a_command_cannot_grow_an_undocumented_or_untyped_option(function, messa
 def test_every_ggns_command_builds_and_documents_its_options(capsys):
     parser = build_parser(COMMANDS, prog="ggns")  # raises on an undocumented or unsupported parameter
     for argv in (["generate"], ["geometry"], ["bench", "sim"], ["bench", "solvers"], ["bench", "models"], ["bench", "tradeoff"],
-                 ["bench", "learning"], ["export"], ["sweep"], ["demo"], ["import-reference"]):
+                 ["bench", "learning"], ["export"], ["sweep"], ["demo"], ["import-reference"],
+                 ["rollout"], ["pretrained", "list"], ["pretrained", "train"], ["pretrained", "package"]):
         with pytest.raises(SystemExit):
             parser.parse_args([*argv, "--help"])
         assert "options:" in capsys.readouterr().out
@@ -146,7 +147,7 @@ def test_generate_count_without_split_is_refused(capsys):
 
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCUMENTED = re.compile(r"python -m ggns ((?:generate|import-reference|geometry|bench|sweep|demo)\b[^`\n#|;&)\"']*)")
+DOCUMENTED = re.compile(r"python -m ggns ((?:generate|import-reference|geometry|bench|sweep|demo|rollout|pretrained)\b[^`\n#|;&)\"']*)")
 
 
 def documented_command_lines() -> list[tuple[str, str]]:

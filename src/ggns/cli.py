@@ -26,6 +26,7 @@ from pytorch_lightning.cli import LightningCLI, SaveConfigCallback
 from pytorch_lightning.trainer.states import TrainerFn
 from pytorch_lightning.utilities.exceptions import SIGTERMException
 
+from .checkpoints import check_format, read_checkpoint
 from .config import load_config
 from .data.module import SimulationDataModule
 from .models.simulators import GraphSimulator
@@ -120,10 +121,13 @@ class SimulatorCLI(LightningCLI):
 
     def _check_pretrained(self, subcommand: str) -> None:
         """`--ckpt_path pretrained:<task>/<model>` (or a shipped file's path): the verified shipped file
-        (`ggns.pretrained.verify`), refused for data of another scene than it was trained on."""
+        (`ggns.pretrained.verify`), refused for data of another scene than it was trained on. Any other
+        checkpoint is read as data first (`ggns.checkpoints`), so a file that would run code or is of
+        another format is refused with the reason rather than a traceback."""
         given = str(self.config[subcommand].ckpt_path)
         name = given.removeprefix(PREFIX) if given.startswith(PREFIX) else shipped_name(given)
         if name is None:
+            check_format(read_checkpoint(given), given)  # refused with the reason, before Lightning reads it
             return
         self.config[subcommand].ckpt_path = str(checkpoint_path(name))
         data = self.config[subcommand].get("data") or {}

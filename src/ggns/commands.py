@@ -217,7 +217,7 @@ def export(checkpoint: str, dataset: str = "plate_small", data_dir: str | None =
     """Write one trajectory's truth (when known), a checkpoint's rollout and the point clouds as ParaView files.
 
     Args:
-        checkpoint: the model checkpoint (.ckpt) whose rollout is written
+        checkpoint: the model checkpoint (.ckpt) whose rollout is written, or a pretrained name (plate/ggns)
         dataset: data preset whose split holds the trajectory
         data_dir: folder of the split files (default: the preset's output)
         split: the split
@@ -229,10 +229,10 @@ def export(checkpoint: str, dataset: str = "plate_small", data_dir: str | None =
     from .data.module import SimulationDataModule
     from .evaluation.pictures import rollout_series
     from .evaluation.schedules import parse_schedule
-    from .models.simulators import load_simulator
+    from .pretrained import load_model
     from .paraview import write_rollout
 
-    model = load_simulator(checkpoint, map_location="cpu")
+    model = load_model(checkpoint, map_location="cpu")
     trajectories = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False).trajectories(split)
     if not 0 <= trajectory < len(trajectories):
         raise ValueError(f"--trajectory {trajectory} is not among the {len(trajectories)} {split} trajectories")
@@ -254,7 +254,7 @@ def diagnose(checkpoint: str, dataset: str = "tissue_cpu", data_dir: str | None 
     """Where a 3D checkpoint's rollout error lives: surface normal, surface tangential, interior.
 
     Args:
-        checkpoint: the model checkpoint (.ckpt) to roll out
+        checkpoint: the model checkpoint (.ckpt) to roll out, or a pretrained name (tissue/ggns)
         dataset: data preset (3D) whose split holds the trajectories
         data_dir: folder of the split files (default: the preset's output)
         split: the split
@@ -267,10 +267,10 @@ def diagnose(checkpoint: str, dataset: str = "tissue_cpu", data_dir: str | None 
     from .evaluation.evaluate import split_trajectories
     from .evaluation.observability import PARTS, error_shares
     from .evaluation.schedules import effective_schedule, parse_schedule
-    from .models.simulators import load_simulator
+    from .pretrained import load_model
     from .reports import markdown_table, write_text
 
-    model = load_simulator(checkpoint, map_location="cpu")
+    model = load_model(checkpoint, map_location="cpu")
     chosen = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False).trajectories(split)[:trajectories]
     if not chosen or chosen[0].dim != 3:
         raise ValueError(f"diagnose needs 3D trajectories; {dataset}/{split} has {'none' if not chosen else chosen[0].dim}")

@@ -27,7 +27,7 @@ from ..data.schema import SCHEMA_VERSION, SplitReader, content_hash
 from ..evaluation.evaluate import MetricTable
 from ..evaluation.selection import checkpoint_glob, checkpoint_info
 from ..models.simulators import load_simulator
-from ..pretrained import REGISTRY
+from .. import pretrained
 from ..reports import write_json
 from .curves import read_scalars
 from .sweep import Run, load_sweep, runs_of
@@ -55,9 +55,12 @@ def entry_run(name: str, spec: dict) -> tuple[Run, int, list[str]]:
     return runs[index], index, overrides
 
 
-def train_command(name: str, spec: dict) -> list[str]:
-    """The fit of entry `name`: the sweep run's own fit command (`Run.fit_command`, resuming a last.ckpt)."""
+def train_command(name: str, spec: dict, resume: bool = False) -> list[str]:
+    """The fit of entry `name`: the sweep run's own fit command (`Run.fit_command`; with `resume`, from
+    the run's last.ckpt when there is one)."""
     command = entry_run(name, spec)[0].fit_command()
+    if not resume and "--ckpt_path" in command:
+        command = command[:command.index("--ckpt_path")]
     return ["python", *command[1:]]
 
 
@@ -66,7 +69,7 @@ def train(name: str, spec: dict | None = None) -> Run:
     two fits at once on 2 cores (the sweep's tests of the run are not needed: `package` evaluates)."""
     spec = spec or load_spec()
     run = entry_run(name, spec)[0]
-    command = train_command(name, spec)
+    command = train_command(name, spec, resume=True)
     print(" ".join(command))
     run.fit_dir.mkdir(parents=True, exist_ok=True)
     subprocess.run([sys.executable, *command[1:]], check=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
@@ -122,7 +125,7 @@ def package(name: str, spec: dict | None = None) -> Path:
     run, index, overrides = entry_run(name, spec)
     entry = spec["entries"][name]
     source = _source_checkpoint(run, entry["family"])
-    target = REGISTRY / f"{name}.ckpt"
+    target = pretrained.REGISTRY / f"{name}.ckpt"
     cut_checkpoint(source, target)
     model = load_simulator(target, map_location="cpu")
     hparams = read_checkpoint(source)["datamodule_hyper_parameters"]
@@ -151,7 +154,7 @@ def package(name: str, spec: dict | None = None) -> Path:
                  "packaged_with_commit": _git_commit(Path(__file__).parent), "split": "test",
                  **test_metrics(model, data, entry.get("test_trajectories", spec["test_trajectories"]))},
     }
-    path = write_json(REGISTRY / f"{name}.json", manifest)
+    path = write_json(pretrained.REGISTRY / f"{name}.json", manifest)
     print(f"wrote {target} ({manifest['bytes'] / 1024:.0f} KB) and {path}")
     return path
 

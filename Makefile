@@ -23,4 +23,4 @@ bench: setup
 	$(PY) -m ggns bench sim --generate
 
 clean-data:
-	rm -rf data/plate_small data/plate_tiny
+	rm -rf data/plate_small data/plate_tiny data/tissue_demo

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import os
 import time
+import warnings
 from pathlib import Path
 
 import matplotlib
@@ -133,7 +134,9 @@ def train_from_scratch(spec: dict, output: Path, minutes: float) -> dict:
             "--trainer.max_time", f"00:{seconds // 3600:02d}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}",
             "--trainer.enable_progress_bar", "true", "--trainer.enable_model_summary", "false",
             "--trainer.logger.init_args.save_dir", str(output), "--trainer.logger.init_args.name", "ggns_from_scratch"]
-    cli = build_cli(args, run=False)
+    with warnings.catch_warnings():  # LightningCLI warns that `python -m ggns demo`'s own argv is not its args
+        warnings.filterwarnings("ignore", message=".*LightningCLI's args parameter.*")
+        cli = build_cli(args, run=False)
     start = time.perf_counter()
     cli.trainer.fit(cli.model, datamodule=cli.datamodule)
     log_dir = Path(cli.trainer.log_dir)

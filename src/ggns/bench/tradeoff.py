@@ -22,7 +22,7 @@ and seeds) into `<preset output>_grid<N>`, and the models are timed and scored o
 were trained at the preset's resolution, so their error at another one is out of distribution
 (the column `reference` says so); their time per step is what the resolution costs.
 
-Model points (`model_points`): each checkpoint is loaded with `models.simulators.load_simulator`
+Model points (`model_points`): each checkpoint (a path or a pretrained name) is loaded with `pretrained.load_model`
 (the class is stored in the checkpoint). Rollouts of whole test trajectories per
 point-cloud schedule (schedules with point clouds only for models that use them): ms per step
 for 1 trajectory and for `batch` trajectories at once (test trajectories repeated if fewer), the
@@ -52,7 +52,7 @@ from ..data.schema import read_trajectories
 from ..evaluation.evaluate import split_trajectories
 from ..evaluation.metrics import rollout_mse
 from ..evaluation.schedules import effective_schedules
-from ..models.simulators import load_simulator
+from ..pretrained import load_model
 from ..reports import write_csv
 from ..scenes import SCENES
 from ..viz import plt, save_figure
@@ -142,7 +142,7 @@ def model_points(checkpoints: dict, dataset: str = "plate_small", schedules=("ev
     scored = tests[:trajectories]
     rows = []
     for name, path in checkpoints.items():
-        model = load_simulator(path, map_location="cpu")
+        model = load_model(path, map_location="cpu")
         chosen = effective_schedules(schedules, model.uses_points)
         for device in devices or default_devices():
             device = torch.device(device)

@@ -15,7 +15,6 @@ arrays and plain containers and refuses every other global before anything of it
 """
 from __future__ import annotations
 
-import hashlib
 import importlib
 import pickle
 import re
@@ -23,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..checkpoints import sha256
 from ..geometry import boundary_facets, signed_volumes
 from ..trajectory import Trajectory, pack_point_clouds
 from .schema import SplitWriter
@@ -85,14 +85,6 @@ def load_pickle(path: str | Path):
             raise UnsafePickleError(f"{path}: {error}") from None
         except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, KeyError, IndexError) as error:
             raise ReferenceFormatError(f"{path}: not a readable pickle ({type(error).__name__}: {error})") from None
-
-
-def sha256(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def split_from_name(path: str | Path) -> str:

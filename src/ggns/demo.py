@@ -242,7 +242,7 @@ def write_report(spec: dict, task: str, results: dict, sentence: str, figures: l
                      f"{m['source']['global_step']} | {m['parameters']} | {metric} "
                      f"{m['test']['metrics'][metric]['mean']:.3e} on {m['test']['trajectories']} |")
     lines += ["", *(f"![{p.stem}]({p.name})" for p in figures if p.suffix == ".png" and p.stem != "learning"),
-              "", f"Animation: [rollout.gif](rollout.gif)", ""]
+              "", "Animation: [rollout.gif](rollout.gif)", ""]
     if scratch:
         at = scratch["claim_at"]
         lines += ["## GGNS from scratch", "",

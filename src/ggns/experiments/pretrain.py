@@ -112,9 +112,8 @@ def test_metrics(model, data: SimulationDataModule, count: int) -> dict:
             "metrics": table.summary(), "per_trajectory": {k: v.tolist() for k, v in per_trajectory.items()}}
 
 
-def validation_curves(run: Run) -> dict[str, list[list[float]]]:
-    """Every val/ scalar of the run's TensorBoard logs: tag -> [[step, value], ...]."""
-    scalars = read_scalars(run.fit_dir)
+def validation_curves(scalars: dict) -> dict[str, list[list[float]]]:
+    """Every val/ scalar of a run's TensorBoard logs (`read_scalars`): tag -> [[step, value], ...]."""
     return {tag: [[float(s), float(v)] for s, v in zip(steps, values)]
             for tag, (steps, _, values) in scalars.items() if tag.startswith("val/")}
 
@@ -149,7 +148,7 @@ def package(name: str, spec: dict | None = None) -> Path:
                  "config": {k: generator_config.get(k) for k in ("scene", "solver", "sensor", "seed")},
                  "train_trajectories": train_count, "train_content_sha256": content_hash(data.path("train"))},
         "hyper_parameters": {k: v for k, v in model.hparams.items() if not k.startswith("_")},
-        "validation": validation_curves(run),
+        "validation": validation_curves(scalars),
         "test": {"command": f"python -m ggns pretrained package --name {name}",
                  "packaged_with_commit": _git_commit(Path(__file__).parent), "split": "test",
                  **test_metrics(model, data, entry.get("test_trajectories", spec["test_trajectories"]))},

@@ -8,6 +8,7 @@ evaluated; `RolloutWriter` writes the rollouts of `predict` as a predictions fil
 from __future__ import annotations
 
 import json
+import math
 import time
 import warnings
 from pathlib import Path
@@ -99,7 +100,9 @@ class RolloutEvaluation(pl.Callback):
             self._cache["zero_motion"] = zero_motion_one_step_mse(batch).mean().item()
         values = {f"val/{name}": v.mean().item() for name, v in metrics.items()}
         values["val/one_step_mse_zero_motion"] = self._cache["zero_motion"]
-        values["val/one_step_ratio"] = values["val/one_step_mse"] / values["val/one_step_mse_zero_motion"]
+        zero = values["val/one_step_mse_zero_motion"]
+        # nothing moves in these trajectories (e.g. a gripper that has not reached the body yet): no ratio
+        values["val/one_step_ratio"] = values["val/one_step_mse"] / zero if zero > 0 else math.nan
         values["val/rollout_mse"] = values[val_metric(self.primary_family(pl_module))]
         values["val/evaluation_seconds"] = time.perf_counter() - start
         for name, value in values.items():

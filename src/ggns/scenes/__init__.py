@@ -4,6 +4,6 @@ A scene module provides `DIM` (its spatial dimension), `check_config(config)` (r
 `num_combinations(scene_cfg)` (shape x material combinations that
 balanced splits cycle through) and `make_trajectory(config, combination, seed, sensor)`.
 """
-from . import plate, tissue
+from . import cavity, plate, tissue
 
-SCENES = {"plate": plate, "tissue": tissue}
+SCENES = {"plate": plate, "tissue": tissue, "cavity": cavity}

@@ -173,6 +173,7 @@ class DepthSensor:
         collider_faces: np.ndarray | None,
         rng: np.random.Generator | None = None,
         occluders: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+        surface: np.ndarray | None = None,
     ) -> np.ndarray:
         """Point cloud [P,d] float32 of the deformable object's visible surface.
 
@@ -181,7 +182,9 @@ class DepthSensor:
         None. occluders (3D only): further triangle meshes (vertices [V,3], triangles [F,3]) that
         block rays and give no points, e.g. a static organ in front of the object or a gripper.
         Points are voxel-down-sampled, sorted lexicographically and, when noise_std > 0,
-        perturbed with N(0, noise_std^2) drawn from `rng`.
+        perturbed with N(0, noise_std^2) drawn from `rng`. surface (3D only): the boundary triangles
+        [F, 3] of `cells` when the caller has them (a fixed topology: found once, not per step);
+        their orientation does not matter to the rays.
         """
         cfg = self.config
         if cfg.noise_std > 0.0 and rng is None:
@@ -197,7 +200,7 @@ class DepthSensor:
         if d == 2:
             meshes = [_deformable_mesh_2d(positions, cells, h)]
         else:
-            meshes = [(positions, boundary_facets(cells, positions))]
+            meshes = [(positions, boundary_facets(cells, positions) if surface is None else np.asarray(surface, dtype=np.int64))]
         if collider_vertices is not None and len(collider_faces) > 0:
             cv = np.asarray(collider_vertices, dtype=np.float64)
             cf = np.asarray(collider_faces, dtype=np.int64)

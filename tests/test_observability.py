@@ -1,12 +1,15 @@
 """`evaluation.observability.error_shares` on a known mesh: a 2x2x2-cell box has one interior node
-and a node at the middle of each face, whose vertex normal is the face's normal."""
+and a node at the middle of each face, whose vertex normal is the face's normal. Its visibility split
+on two tetrahedra (every node on the boundary, like the cavity's wall) under hand-placed point clouds."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from ggns.evaluation.observability import error_shares, vertex_normals
+from ggns.evaluation.observability import (PARTS, VISIBILITY, default_visibility_radius, error_shares, seen_fraction,
+                                           vertex_normals)
 from ggns.geometry import boundary_facets, box_tet_mesh
+from ggns.trajectory import pack_point_clouds
 
 
 @pytest.fixture(scope="module")
@@ -65,3 +68,84 @@ def test_bad_inputs_name_the_problem(box):
         error_shares(np.zeros((3, len(rest), 3)), np.zeros((3, len(rest), 3)), rest, cells[:, :3], fixed)
     with pytest.raises(ValueError, match="every node is fixed"):
         error_shares(np.zeros((3, len(rest), 3)), np.zeros((3, len(rest), 3)), rest, cells, ~fixed)
+
+
+# two tetrahedra sharing the face 1-2-3; node 0 fixed; node 4 rises 0.2 a step
+TWO_TETS_REST = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], dtype=np.float64)
+TWO_TETS = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
+ERRORS = {1: 0.01, 2: 0.02, 3: 0.3, 4: 0.04}  # node: its x error at each predicted state
+
+
+@pytest.fixture(scope="module")
+def two_tets():
+    rest = TWO_TETS_REST
+    true = np.stack([rest + np.outer(np.arange(5) == 4, [0, 0, 0.2 * t]) for t in range(4)])  # 4 states
+    pred = true.copy()
+    for node, dx in ERRORS.items():
+        pred[1:, node, 0] += dx
+    pred[1:, 0] += 0.5  # a fixed node's error counts nowhere
+    near = 0.05  # a point this far from a node sees it at radius 0.1
+    at = lambda t, node: true[t, node] + [0, near, 0]  # noqa: E731
+    clouds = [
+        np.array([at(0, 0), at(0, 1), at(0, 2)]),
+        np.array([at(1, 0), at(1, 1), rest[4]]),  # rest[4] is 0.2 from node 4's true position: not seen
+        np.array([at(2, 0), at(2, 1), pred[2, 3]]),  # on node 3's prediction, 0.3 from its true position: not seen
+        np.array([at(3, 0), at(3, 2), at(3, 4)]),
+    ]
+    points, offsets = pack_point_clouds(clouds)
+    return pred, true, rest, points, offsets
+
+
+def test_seen_fraction_counts_the_steps_with_a_point_near_the_true_position(two_tets):
+    _, true, _, points, offsets = two_tets
+    np.testing.assert_allclose(seen_fraction(true, points, offsets, 0.1), [1, 3 / 4, 2 / 4, 0, 1 / 4])
+    np.testing.assert_allclose(seen_fraction(true, points, offsets, 0.25)[[3, 4]], [0, 2 / 4])  # rest[4] now counts
+    empty = np.zeros((0, 3), dtype=np.float32)
+    np.testing.assert_array_equal(seen_fraction(true, empty, np.zeros(5, dtype=np.int64), 0.1), 0)
+
+
+def test_visibility_groups_and_their_errors_by_hand(two_tets):
+    pred, true, rest, points, offsets = two_tets
+    fixed = np.arange(5) == 0
+    shares = error_shares(pred, true, rest, TWO_TETS, fixed, points=points, point_offsets=offsets, radius=0.1)
+    # node 1 seen at 3 of 4 steps, node 2 at 2 of 4 (>= half: seen), node 4 at 1, node 3 at none
+    squared = {node: 3 * dx**2 for node, dx in ERRORS.items()}  # 3 predicted states
+    total = sum(squared.values())
+    count = 3 * 4 * 3  # predicted states x free nodes x coordinates
+    expected = {"seen": (squared[1] + squared[2], 2), "sometimes_seen": (squared[4], 1), "never_seen": (squared[3], 1)}
+    for group, (error, nodes) in expected.items():
+        assert shares[group] == pytest.approx(error / count)
+        assert shares[f"{group}_share"] == pytest.approx(error / total)
+        assert shares[f"{group}_nodes"] == nodes
+        assert shares[f"{group}_node_mse"] == pytest.approx(error / (3 * nodes * 3))
+    assert shares["visibility_radius"] == 0.1
+    # every node is on the boundary: nothing interior, and both splits add up to the same total
+    assert shares["interior"] == 0.0
+    assert sum(shares[g] for g in VISIBILITY) == pytest.approx(sum(shares[p] for p in PARTS)) == pytest.approx(total / count)
+
+
+def test_default_radius_and_the_split_without_points(two_tets):
+    pred, true, rest, points, offsets = two_tets
+    fixed = np.arange(5) == 0
+    # shortest edges: 1 at nodes 0..3 (their edges to node 0), sqrt 2 at node 4: the median is 1
+    assert default_visibility_radius(rest, TWO_TETS) == pytest.approx(0.75)
+    shares = error_shares(pred, true, rest, TWO_TETS, fixed, points=points, point_offsets=offsets)
+    assert shares["visibility_radius"] == pytest.approx(0.75)
+    # at 0.75 node 4 is also seen at step 1 (rest[4], 0.2 away) and node 3 at step 2 (its prediction, 0.3 away)
+    assert (shares["seen_nodes"], shares["sometimes_seen_nodes"], shares["never_seen_nodes"]) == (3, 1, 0)
+    plain = error_shares(pred, true, rest, TWO_TETS, fixed)
+    assert set(plain) == {*PARTS, *(f"{p}_share" for p in PARTS)}
+    assert all(shares[key] == value for key, value in plain.items())
+
+
+def test_bad_visibility_inputs_name_the_problem(two_tets):
+    pred, true, rest, points, offsets = two_tets
+    fixed = np.arange(5) == 0
+    with pytest.raises(ValueError, match="both points and point_offsets"):
+        error_shares(pred, true, rest, TWO_TETS, fixed, points=points)
+    with pytest.raises(ValueError, match=r"point_offsets must be \[T\+1\] = \[5\]"):
+        error_shares(pred, true, rest, TWO_TETS, fixed, points=points, point_offsets=offsets[:-1])
+    with pytest.raises(ValueError, match="do not describe per-step clouds"):
+        error_shares(pred, true, rest, TWO_TETS, fixed, points=points[:-1], point_offsets=offsets)
+    with pytest.raises(ValueError, match="must be positive"):
+        error_shares(pred, true, rest, TWO_TETS, fixed, points=points, point_offsets=offsets, radius=0.0)

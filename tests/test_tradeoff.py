@@ -1,4 +1,4 @@
-"""The speed/accuracy trade benchmark (ggns.bench.tradeoff) on the plate_tiny preset."""
+"""The speed/accuracy trade benchmark (ggns.bench.tradeoff) on the plate_tiny preset and a tiny tissue preset."""
 from __future__ import annotations
 
 import csv
@@ -124,3 +124,66 @@ def test_tradeoff_at_two_mesh_resolutions(checkpoints, tiny_data_dir, tmp_path):
     assert all(f"_grid{finer}" in r["reference"] and "trained at" in r["reference"] for r in finer_rows)
     assert all(math.isfinite(r["rollout_mse"]) and r["ms_per_step_1"] > 0 for r in rows)
     assert (tmp_path / "out" / "tradeoff.csv").is_file() and (tmp_path / "out" / "tradeoff.png").is_file()
+
+
+# ---- the 3D tissue scene: mesh resolution levels and Newton tolerances --------------------------------
+
+def test_tissue_resolution_levels():
+    from ggns.scenes import plate, tissue
+
+    scene = load_config("tissue_tiny")["scene"]
+    assert tissue.resolution(scene) == 10 and tissue.with_resolution(scene, 10) == scene  # the preset maps to itself
+    assert tissue.with_resolution(scene, 7)["block"]["nodes"] == [7, 6, 3]
+    assert tissue.with_resolution(scene, 13)["block"]["nodes"] == [13, 12, 5]
+    assert tissue.with_resolution(scene, 3)["block"]["nodes"][2] == 2  # at least 2 node layers along z
+    assert scene["block"]["nodes"] == [10, 9, 4]  # a copy: the preset is untouched
+    coarse = tissue.with_resolution(scene, 7)
+    rest = tissue.tissue_mesh(coarse)[0]
+    assert len(tissue.grasped_patch(coarse, rest, int(tissue.grasp_candidates(coarse, rest)[0]))) > 1  # never a point load
+    plate_scene = load_config("plate_tiny")["scene"]
+    assert plate.with_resolution(plate_scene, 5)["grid_nodes"] == 5 and plate.resolution(plate_scene) == 9
+
+
+def test_a_scene_without_resolution_levels_is_named(monkeypatch):
+    from ggns.bench.tradeoff import resolution_module
+    from ggns.scenes import tissue
+
+    monkeypatch.delattr(tissue, "with_resolution")
+    with pytest.raises(ValueError, match="scene 'tissue' has no mesh resolution levels.*with_resolution"):
+        resolution_module("tissue")
+
+
+def test_tissue_tradeoff_at_two_resolutions(tmp_path):
+    """The 3D trade on a tiny tissue preset (T = 6): simulator rows at the preset's resolution and a
+    coarser one (time steps and a Newton tolerance), a shipped tissue model's rows at both (the
+    coarser level's test trajectories, with point clouds, generated beside the data), and the CSV."""
+    from ggns.bench.tradeoff import tradeoff
+    from ggns.config import CONF_DIR
+    from ggns.data.generate import generate
+
+    preset = tmp_path / "tissue_tiny6.yaml"
+    preset.write_text(f"base: {CONF_DIR / 'data' / 'tissue_tiny.yaml'}\nscene:\n  num_steps: 6\n"
+                      f"splits: {{train: 1, val: 1, test: 1}}\noutput: {tmp_path / 'data'}\n")
+    generate(load_config(preset), ["test"], progress=False)  # the models' test split at the preset's level
+    rows = tradeoff(str(preset), {"mgn": "tissue/mgn"}, trajectories=1, coarsen=(1, 2), output_dir=tmp_path / "out",
+                    schedules=("never",), batch=2, repeats=1, resolution=[10, 5], newton_tolerances=(1e-4,),
+                    threads=1)  # 2 threads on a busy 2-core machine: index_add_ 100x slower
+    with open(tmp_path / "out" / "tradeoff.csv") as f:
+        read = list(csv.DictReader(f))
+    assert tuple(read[0]) == COLUMNS and len(read) == len(rows)
+    sim = [r for r in read if r["kind"] == "simulator"]
+    assert {(r["resolution"], r["nodes"]) for r in sim} == {("10", "360"), ("5", "50")}
+    for level in ("10", "5"):
+        mine = [r for r in sim if r["resolution"] == level]
+        assert [(r["axis"], r["substeps"]) for r in mine] == [("time step", "2"), ("time step", "1"),
+                                                              ("newton tolerance", "1")]
+        assert float(mine[0]["rollout_mse"]) == 0.0 and float(mine[1]["rollout_mse"]) > 0
+        assert mine[2]["setting"] == "newton_tolerance=0.0001 (substeps=1)" and float(mine[2]["newton_tolerance"]) == 1e-4
+        assert 0 <= float(mine[2]["mse_vs_preset_tolerance"]) < float(mine[1]["rollout_mse"])
+        assert float(mine[2]["newton_iterations"]) <= float(mine[1]["newton_iterations"])
+    models = [r for r in read if r["kind"] == "model"]
+    assert [(r["name"], r["setting"], r["resolution"], r["nodes"], r["device"]) for r in models] == [
+        ("mgn", "never", "10", "360", "cpu (1 thread)"), ("mgn", "never", "5", "50", "cpu (1 thread)")]
+    assert all(math.isfinite(float(r["rollout_mse"])) and float(r["ms_per_step_1"]) > 0 for r in models)
+    assert "_grid5" in models[1]["reference"] and "trained at resolution 10" in models[1]["reference"]
+    assert (tmp_path / "out" / "tradeoff.png").is_file()

@@ -164,7 +164,9 @@ def bench_models(dataset: str = "plate_small", models: Sequence[str] = ("ggns", 
 def bench_tradeoff(dataset: str = "plate_small", checkpoint: dict[str, str] | None = None, trajectories: int = 4,
                    coarsen: Sequence[int] = (1, 2, 5), schedules: Sequence[str] = ("every:1", "never"),
                    grid_nodes: Sequence[int] | None = None, rollout_trajectories: int = 32, repeats: int = 3,
-                   output_dir: str = "lightning_logs/tradeoff") -> list[dict]:
+                   output_dir: str = "lightning_logs/tradeoff", resolution: Sequence[int] | None = None,
+                   newton_tolerance: Sequence[float] | None = None, data_dir: str | None = None,
+                   threads: int | None = None, simulator: bool = True) -> list[dict]:
     """Time per rollout step against rollout error: the simulator and model checkpoints (CSV + Pareto plot).
 
     Args:
@@ -173,17 +175,26 @@ def bench_tradeoff(dataset: str = "plate_small", checkpoint: dict[str, str] | No
         trajectories: test trajectories scored
         coarsen: simulator time-step coarsening factors
         schedules: point-cloud schedules of the model rollouts
-        grid_nodes: mesh nodes per side, resolutions for the simulator and the models (default: the preset's)
+        grid_nodes: the plate's mesh nodes per side (older name of --resolution)
         rollout_trajectories: trajectories in the batched rollout
         repeats: timed rollouts per measurement (the median is reported)
         output_dir: where tradeoff.csv and tradeoff.png go
+        resolution: mesh resolution levels for the simulator and the models (plate: nodes per side, tissue: nodes along x; default: the preset's)
+        newton_tolerance: also the simulator at these Newton tolerances (m, coarser than the preset's), at the preset's substeps
+        data_dir: the dataset's directory (default: the preset's output)
+        threads: torch threads of the model rollouts on the CPU (default: torch's; the simulator always runs on 1)
+        simulator: also the simulator's points (--no-simulator: the checkpoints only)
     """
     from .bench.tradeoff import tradeoff
 
 
+    if grid_nodes and resolution:
+        raise ValueError("give --resolution or --grid-nodes (its older name), not both")
+    levels = resolution or grid_nodes
     return tradeoff(dataset, dict(checkpoint or {}), trajectories=trajectories, coarsen=tuple(coarsen),
                     output_dir=output_dir, schedules=tuple(schedules), batch=rollout_trajectories, repeats=repeats,
-                    grid_nodes=list(grid_nodes) if grid_nodes else None)
+                    resolution=list(levels) if levels else None, newton_tolerances=tuple(newton_tolerance or ()),
+                    data_dir=data_dir, threads=threads, simulator=simulator)
 
 
 def bench_learning(*overrides: str, config: str = "plate_ggns", minutes: float | None = None,
@@ -250,8 +261,10 @@ def export(checkpoint: str, dataset: str = "plate_small", data_dir: str | None =
 
 def diagnose(checkpoint: str, dataset: str = "tissue_cpu", data_dir: str | None = None,
              split: Literal["train", "val", "test"] = "val", trajectories: int = 9,
-             schedule: Sequence[str] = ("every:1", "never"), output: str | None = None) -> str:
-    """Where a 3D checkpoint's rollout error lives: surface normal, surface tangential, interior.
+             schedule: Sequence[str] = ("every:1", "never"), output: str | None = None,
+             visibility_radius: float | None = None) -> str:
+    """Where a 3D checkpoint's rollout error lives: surface normal, surface tangential, interior,
+    and by what the cameras saw (seen, sometimes seen, never seen).
 
     Args:
         checkpoint: the model checkpoint (.ckpt) to roll out, or a pretrained name (tissue/ggns)
@@ -261,11 +274,12 @@ def diagnose(checkpoint: str, dataset: str = "tissue_cpu", data_dir: str | None 
         trajectories: the first n trajectories of the split, rolled out as one batch
         schedule: point-cloud schedules to roll out (a model without point clouds uses never)
         output: also write the table to this markdown file
+        visibility_radius: a node is seen at a step with a point this close (default: 0.75 x the nodes' median shortest rest edge)
     """
     from .batch import TrajectoryBatch
     from .data.module import SimulationDataModule
     from .evaluation.evaluate import split_trajectories
-    from .evaluation.observability import PARTS, error_shares
+    from .evaluation.observability import PARTS, SEEN_AT_LEAST, VISIBILITY, error_shares
     from .evaluation.schedules import effective_schedule, parse_schedule
     from .pretrained import load_model
     from .reports import markdown_table, write_text
@@ -275,22 +289,33 @@ def diagnose(checkpoint: str, dataset: str = "tissue_cpu", data_dir: str | None 
     if not chosen or chosen[0].dim != 3:
         raise ValueError(f"diagnose needs 3D trajectories; {dataset}/{split} has {'none' if not chosen else chosen[0].dim}")
     batch = TrajectoryBatch.from_trajectories(chosen)
-    rows, done = [], set()
+    rows, done, parts = [], set(), []
     for text in schedule:
         plan = effective_schedule(parse_schedule(text), model.uses_points)
         if plan.key in done:
             continue
         done.add(plan.key)
         preds = split_trajectories(model.rollout(batch, plan), batch)
-        parts = [error_shares(p[0].numpy(), traj.positions, traj.rest_positions, traj.cells, traj.fixed)
+        parts = [error_shares(p[0].numpy(), traj.positions, traj.rest_positions, traj.cells, traj.fixed,
+                              points=traj.points, point_offsets=traj.point_offsets, radius=visibility_radius)
                  for p, traj in zip(preds, chosen)]
-        mean = {p: sum(part[p] for part in parts) / len(parts) for p in PARTS}
-        total = sum(mean.values())
+        mean = {p: sum(part[p] for part in parts) / len(parts) for p in (*PARTS, *VISIBILITY)}
+        total = sum(mean[p] for p in PARTS)
         rows.append([plan.key, f"{total:.3g}",
-                     *(f"{mean[p]:.3g} ({mean[p] / total if total > 0 else 0.0:.2f})" for p in PARTS)])
+                     *(f"{mean[p]:.3g} ({mean[p] / total if total > 0 else 0.0:.2f})" for p in (*PARTS, *VISIBILITY))])
     table = (f"{type(model).__name__} from {checkpoint}, {len(chosen)} {split} trajectories of {dataset}: mean squared "
              f"error per free node and coordinate over states 1..T-1, mean over trajectories (share of that total)\n\n"
-             + markdown_table(["schedule", "free nodes", *PARTS], rows) + "\n")
+             + markdown_table(["schedule", "free nodes", *PARTS, *VISIBILITY], rows) + "\n")
+    if parts:  # the groups depend on the data only (true positions and point clouds), not on the schedule
+        nodes = {g: sum(part[f"{g}_nodes"] for part in parts) for g in VISIBILITY}
+        radii = sorted({part["visibility_radius"] for part in parts})
+        radius = f"{radii[0]:.3g}" if len(radii) == 1 else f"{radii[0]:.3g} to {radii[-1]:.3g}"
+        table += (f"\nVisibility groups of the free nodes, from the data's point clouds whatever the schedule: a node is "
+                  f"seen at a step when a point of that step's cloud lies within {radius} of its true position; seen "
+                  f"at >= {SEEN_AT_LEAST:.0%} of the steps: seen, at none: never_seen. Free nodes over the "
+                  f"{len(chosen)} trajectories: "
+                  + ", ".join(f"{g} {nodes[g]} ({nodes[g] / max(sum(nodes.values()), 1):.2f})" for g in VISIBILITY)
+                  + "\n")
     print(table)
     if output:
         write_text(output, table)

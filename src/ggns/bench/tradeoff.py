@@ -2,8 +2,8 @@
 simulator at coarser time steps and for learned simulators (checkpoints), as a CSV and a Pareto
 plot (`python -m ggns bench tradeoff`).
 
-Simulator points (`simulator_points`): the plate preset records one state per `frame_dt` and
-integrates it with `scene.substeps` solver steps (plate: 1). The time resolution is coarsened by
+Simulator points (`simulator_points`): a preset records one state per `frame_dt` and integrates
+it with `scene.substeps` solver steps (plate and tissue: 1). The time resolution is coarsened by
 solving with fewer substeps per frame; since the preset's own 1 substep cannot be divided, the
 REFERENCE is made finer instead: it uses `reference_substeps` (default: the smallest multiple of
 the preset's substeps that every coarsening factor divides, e.g. 10 for factors 1, 2, 5 and 1
@@ -13,30 +13,50 @@ generator, so its error is the dataset's time-discretization error. Trajectories
 the preset's test split (same combination and seed as `generate`), simulated by the scene's
 `make_trajectory` with the sensor replaced by a no-op, on 1 torch thread (as a generation
 worker; `timing.time_trajectories`, the timer of `bench sim` too); the time is the whole call (scene set-up included, sensor excluded) divided by the
-T - 1 simulated frames, median over the trajectories. Mesh resolution: the plate scene exposes
-`scene.grid_nodes` (nodes per side); `grid_nodes` overrides it for the simulator (reference and
-coarse runs alike) and the node count is recorded. `tradeoff` takes several resolutions: at the
-preset's own the learned models are evaluated on the stored test split; at any other,
-`resolution_tests` generates test trajectories at that resolution (real point clouds, same scenes
-and seeds) into `<preset output>_grid<N>`, and the models are timed and scored on them. The models
-were trained at the preset's resolution, so their error at another one is out of distribution
-(the column `reference` says so); their time per step is what the resolution costs.
+T - 1 simulated frames, median over the trajectories.
+
+Newton tolerance (`newton_tolerances`, a second simulator axis): the simulator at the preset's
+substeps with `solver.newton_tolerance` (max |dx| of the last Newton step, m) coarser than the
+preset's; the rows have `axis` "newton tolerance" (the substep rows "time step"), their setting
+names the tolerance, and besides the rollout MSE against the common reference (which at the
+preset's substeps is dominated by the time step) the CSV gives `mse_vs_preset_tolerance`, the
+error against the same substeps at the preset's tolerance (the tolerance's own error), and
+`newton_iterations` (mean per solver step) for every simulator row.
+
+Mesh resolution: a scene module that supports it defines `resolution(scene) -> int`, the
+preset's own level, and `with_resolution(scene, level) -> dict`, a copy of the scene config at
+another level (plate: `grid_nodes`, nodes per side; tissue: nodes along x, the other axes scaled
+alike, see `scenes.tissue.with_resolution`); a scene without them runs at its preset's mesh only
+(asking for a level is an error naming the scene). `resolution` sets the level for the simulator
+(reference and coarse runs alike; `grid_nodes` is its older, plate-only name) and the node count
+and level are recorded. `tradeoff` takes several levels: at the preset's own the learned models
+are evaluated on the stored test split; at any other, `resolution_tests` generates test
+trajectories at that level (real point clouds, same scenes and seeds) into
+`<preset output>_grid<level>`, and the models are timed and scored on them. The models were
+trained at the preset's resolution, so their error at another one is out of distribution (the
+column `reference` says so); their time per step is what the resolution costs. On a denser mesh
+than the preset's their graph builder's guard `max_num_neighbors` is raised by the density ratio
+((level - 1) / (preset level - 1))^dim (edges are unchanged: the guard raises, it never drops).
+The CSV is rewritten after each level, so a failure at a later level keeps the earlier rows.
 
 Model points (`model_points`): each checkpoint (a path or a pretrained name) is loaded with `pretrained.load_model`
 (the class is stored in the checkpoint). Rollouts of whole test trajectories per
 point-cloud schedule (schedules with point clouds only for models that use them): ms per step
 for 1 trajectory and for `batch` trajectories at once (test trajectories repeated if fewer), the
-median of `repeats` rollouts after a warm-up (`timing.time_rollout`), on the CPU and, when
-present, CUDA; the rollout MSE (`metrics.rollout_mse`, all nodes, as in `evaluate_batch`) of the
+median of `repeats` rollouts after a warm-up (`timing.time_rollout`), on the CPU (torch's
+threads, or `threads`, which the device column then names; the simulator always runs on 1) and,
+when present, CUDA; the rollout MSE (`metrics.rollout_mse`, all nodes, as in `evaluate_batch`) of the
 first `trajectories` test trajectories against the dataset.
 
 The plot's x axis is ms per trajectory-step (models: the batched time divided by the batch; the
 simulator runs one trajectory at a time), y the rollout MSE; both are logarithmic, so zero errors
-(the simulator reference) are drawn at the bottom edge. Note the two references: simulator
+(the simulator reference) are drawn at the bottom edge; the time-step rows of a resolution are
+joined by a line, its Newton-tolerance rows drawn as crosses. Note the two references: simulator
 errors are against the finer simulator, model errors against the dataset.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import statistics
 from pathlib import Path
@@ -48,19 +68,21 @@ from ..batch import TrajectoryBatch
 from ..config import load_config
 from ..data.generate import generate, split_path, trajectory_jobs
 from ..data.module import SimulationDataModule
-from ..data.schema import read_trajectories
+from ..data.schema import DatasetError, read_trajectories
 from ..evaluation.evaluate import split_trajectories
 from ..evaluation.metrics import rollout_mse
 from ..evaluation.schedules import effective_schedules
 from ..pretrained import load_model
 from ..reports import write_csv
 from ..scenes import SCENES
+from ..sim.solver import SolverConfig
 from ..viz import plt, save_figure
 from .report import print_table
 from .timing import NoSensor, default_devices, time_rollout, time_trajectories
 
 COLUMNS = ("kind", "name", "setting", "device", "nodes", "steps", "trajectories", "ms_per_step_1",
-           "batch", "ms_per_step_batched", "ms_per_trajectory_step", "rollout_mse", "reference", "pareto")
+           "batch", "ms_per_step_batched", "ms_per_trajectory_step", "rollout_mse", "reference", "pareto",
+           "resolution", "axis", "substeps", "newton_tolerance", "newton_iterations", "mse_vs_preset_tolerance")
 
 
 def reference_substeps_for(preset_substeps: int, coarsen) -> int:
@@ -68,60 +90,123 @@ def reference_substeps_for(preset_substeps: int, coarsen) -> int:
     return math.lcm(int(preset_substeps), *(int(c) for c in coarsen))
 
 
+def resolution_module(scene_name: str):
+    """The scene module of `scene_name`, checked to define mesh resolution levels
+    (`resolution(scene) -> int` and `with_resolution(scene, level) -> dict`; module docstring)."""
+    if scene_name not in SCENES:
+        raise ValueError(f"unknown scene {scene_name!r}; known: {sorted(SCENES)}")
+    module = SCENES[scene_name]
+    missing = [f for f in ("resolution", "with_resolution") if not callable(getattr(module, f, None))]
+    if missing:
+        raise ValueError(f"scene {scene_name!r} has no mesh resolution levels: its module {module.__name__} lacks "
+                         f"{' and '.join(missing)}(...), which bench tradeoff needs for --resolution; run it without "
+                         f"--resolution (the preset's own mesh) or add them to the scene module")
+    return module
+
+
+def preset_resolution(scene: dict):
+    """The preset's own resolution level, or "" when its scene module defines no levels."""
+    module = SCENES.get(scene["name"])
+    return int(module.resolution(scene)) if callable(getattr(module, "resolution", None)) else ""
+
+
+def at_resolution(config: dict, level: int | None) -> dict:
+    """`config` with its scene at mesh resolution `level` (None: unchanged)."""
+    if level is None:
+        return config
+    module = resolution_module(config["scene"]["name"])
+    return {**config, "scene": module.with_resolution(config["scene"], int(level))}
+
+
 def simulator_points(config: dict, trajectories: int = 4, coarsen=(1, 2, 5), grid_nodes: int | None = None,
-                     reference_substeps: int | None = None, split: str = "test") -> list[dict]:
-    """One row per coarsening factor (module docstring): ms per simulated frame and rollout MSE
-    against the reference (substeps `reference_substeps`); the first `trajectories` of `split`."""
+                     reference_substeps: int | None = None, split: str = "test", resolution: int | None = None,
+                     newton_tolerances=()) -> list[dict]:
+    """One row per coarsening factor, then one per Newton tolerance (module docstring): ms per
+    simulated frame and rollout MSE against the reference (substeps `reference_substeps`, the
+    preset's tolerance); the first `trajectories` of `split`, at mesh resolution `resolution`
+    (`grid_nodes`: its older, plate-only name; None: the preset's)."""
     coarsen = sorted({int(c) for c in coarsen})
     if not coarsen or coarsen[0] < 1 or trajectories < 1:
         raise ValueError(f"need coarsening factors >= 1 and trajectories >= 1, got {coarsen}, {trajectories}")
-    scene = dict(config["scene"])
-    if grid_nodes is not None:
-        scene["grid_nodes"] = int(grid_nodes)
+    if grid_nodes is not None and resolution is not None:
+        raise ValueError("give resolution or grid_nodes (its older name), not both")
+    level = resolution if resolution is not None else grid_nodes
+    base = at_resolution(config, level)
+    scene, solver = dict(base["scene"]), dict(base["solver"])
     preset_substeps = int(config["scene"]["substeps"])
+    preset_tolerance = float(solver.get("newton_tolerance", SolverConfig.newton_tolerance))
+    tolerances = sorted({float(t) for t in newton_tolerances})
+    finer = [t for t in tolerances if t <= preset_tolerance]
+    if finer:
+        raise ValueError(f"Newton tolerances must be coarser than the preset's {preset_tolerance:g}, got {finer}")
     reference = reference_substeps or reference_substeps_for(preset_substeps, coarsen)
     bad = [c for c in coarsen if reference % c]
     if bad:
         raise ValueError(f"reference_substeps={reference} is not divisible by the coarsening factors {bad}")
     module = SCENES[scene["name"]]
-    base = {**config, "scene": scene}
-    module.check_config({**base, "scene": {**scene, "substeps": reference}})
+
+    def setting(substeps: int, tolerance: float = preset_tolerance) -> dict:
+        return {**base, "scene": {**scene, "substeps": substeps}, "solver": {**solver, "newton_tolerance": tolerance}}
+
+    module.check_config(setting(reference))
+    for tolerance in tolerances:
+        module.check_config(setting(preset_substeps, tolerance))
     jobs = trajectory_jobs(base, split, trajectories)
-    sensor = NoSensor(int(scene.get("dim", 2)))
-    runs = {c: time_trajectories(module, {**base, "scene": {**scene, "substeps": reference // c}}, jobs, sensor)
-            for c in coarsen}
+    sensor = NoSensor(int(getattr(module, "DIM", scene.get("dim", 2))))
+    runs = {c: time_trajectories(module, setting(reference // c), jobs, sensor) for c in coarsen}
     # the reference: the c = 1 runs if made, else simulated now (untimed)
-    reference_runs = runs[1] if 1 in runs else \
-        time_trajectories(module, {**base, "scene": {**scene, "substeps": reference}}, jobs, sensor)
-    truth = np.stack([t.positions for _, t in reference_runs])
+    reference_runs = runs[1] if 1 in runs else time_trajectories(module, setting(reference), jobs, sensor)
+    truth = torch.from_numpy(np.stack([t.positions for _, t in reference_runs]))
+    level = level if level is not None else preset_resolution(scene)
+    points = [(f"substeps={reference // c} (coarsen {c}x)", "time step", reference // c, preset_tolerance, runs[c])
+              for c in coarsen]
+    points += [(f"newton_tolerance={t:g} (substeps={preset_substeps})", "newton tolerance", preset_substeps, t,
+                time_trajectories(module, setting(preset_substeps, t), jobs, sensor)) for t in tolerances]
+    same_steps = None  # the tolerance rows' own error: against the preset's tolerance at the same substeps
+    if tolerances:
+        c = reference // preset_substeps if reference % preset_substeps == 0 else None
+        same_steps = runs[c] if c in runs else time_trajectories(module, setting(preset_substeps), jobs, sensor)
+        same_steps = torch.from_numpy(np.stack([t.positions for _, t in same_steps]))
     rows = []
-    for c in coarsen:
-        pred = np.stack([t.positions for _, t in runs[c]])
+    for label, axis, substeps, tolerance, timed in points:
+        pred = np.stack([t.positions for _, t in timed])
         steps = pred.shape[1] - 1
-        ms = 1e3 * statistics.median(seconds / steps for seconds, _ in runs[c])
+        ms = 1e3 * statistics.median(seconds / steps for seconds, _ in timed)
+        iterations = [t.diagnostics["newton_iterations"][1:].mean() for _, t in timed
+                      if t.diagnostics is not None and "newton_iterations" in t.diagnostics]
         rows.append({
-            "kind": "simulator", "name": "simulator", "setting": f"substeps={reference // c} (coarsen {c}x)",
+            "kind": "simulator", "name": "simulator", "setting": label,
             "device": "cpu (1 thread)", "nodes": int(pred.shape[2]), "steps": steps, "trajectories": len(jobs),
             "ms_per_step_1": ms, "batch": 1, "ms_per_step_batched": ms, "ms_per_trajectory_step": ms,
-            "rollout_mse": rollout_mse(torch.from_numpy(pred), torch.from_numpy(truth))[0],
-            "reference": f"simulator substeps={reference}",
+            "rollout_mse": rollout_mse(torch.from_numpy(pred), truth)[0],
+            "reference": f"simulator substeps={reference}"
+            + (f", newton_tolerance={preset_tolerance:g}" if tolerances else ""),
+            "resolution": level, "axis": axis, "substeps": substeps, "newton_tolerance": tolerance,
+            "newton_iterations": float(np.mean(iterations)) / substeps if iterations else "",
+            "mse_vs_preset_tolerance": rollout_mse(torch.from_numpy(pred), same_steps)[0]
+            if axis == "newton tolerance" else "",
         })
     return rows
 
 
 def resolution_tests(config: dict, grid_nodes: int, count: int, log=print):
-    """`count` test trajectories of the preset `config` at `grid_nodes` nodes per side (its scenes
-    and seeds, real point clouds), generated once into `<output>_grid<grid_nodes>/test.h5` and
-    regenerated when that file holds fewer. Returns (trajectories, data directory)."""
+    """`count` test trajectories of the preset `config` at mesh resolution level `grid_nodes`
+    (plate: nodes per side; the scene module's `with_resolution`) with its scenes and seeds and
+    real point clouds, generated once into `<output>_grid<level>/test.h5` and regenerated when
+    that file holds fewer or was made with another scene, solver or sensor configuration.
+    Returns (trajectories, data directory)."""
     if int(grid_nodes) < 2 or count < 1:
-        raise ValueError(f"need grid_nodes >= 2 and count >= 1, got {grid_nodes}, {count}")
-    output = Path(f"{config['output']}_grid{int(grid_nodes)}")
-    cfg = {**config, "scene": {**config["scene"], "grid_nodes": int(grid_nodes)},
-           "splits": {"test": int(count)}, "output": str(output)}
+        raise ValueError(f"need a resolution level >= 2 and count >= 1, got {grid_nodes}, {count}")
+    level = int(grid_nodes)
+    output = Path(f"{config['output']}_grid{level}")
+    cfg = {**at_resolution(config, level), "splits": {"test": int(count)}, "output": str(output)}
     path = split_path(output, "test")
-    tests = read_trajectories(path) if path.exists() else []
+    try:
+        tests = read_trajectories(path, expected_config=cfg) if path.exists() else []
+    except DatasetError:
+        tests = []  # made with another configuration: regenerated
     if len(tests) < count:
-        log(f"generating {count} test trajectories at {grid_nodes} x {grid_nodes} nodes into {output}")
+        log(f"generating {count} {config['scene']['name']} test trajectories at mesh resolution {level} into {output}")
         generate(cfg, ["test"], overwrite=path.exists(), progress=False)
         tests = read_trajectories(path)
     return tests[:count], output
@@ -129,20 +214,44 @@ def resolution_tests(config: dict, grid_nodes: int, count: int, log=print):
 
 def model_points(checkpoints: dict, dataset: str = "plate_small", schedules=("every:1", "never"), trajectories: int = 4,
                  batch: int = 32, repeats: int = 3, devices=None, data_dir: str | None = None,
-                 tests: list | None = None, reference: str | None = None) -> list[dict]:
+                 tests: list | None = None, reference: str | None = None, resolution: int | str = "",
+                 neighbour_scale: float = 1.0, threads: int | None = None) -> list[dict]:
     """One row per checkpoint x schedule x device (module docstring). `tests`: the test
-    trajectories to use instead of the dataset's test split (`reference` then names them)."""
+    trajectories to use instead of the dataset's test split (`reference` then names them);
+    `resolution`: their mesh resolution level, for the CSV; `neighbour_scale`: the models'
+    `max_num_neighbors` (a guard of the graph builder, which raises rather than drop an edge) is
+    multiplied by it, for meshes denser than the models were trained on (edges are unchanged);
+    `threads`: torch threads of the CPU rollouts (default: torch's; the device column then says so)."""
+    if threads is not None and int(threads) < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+    before = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(int(threads))
+    try:
+        return _model_points(checkpoints, dataset, schedules, trajectories, batch, repeats, devices, data_dir, tests,
+                             reference, resolution, neighbour_scale,
+                             "" if threads is None else f" ({threads} thread{'s' if threads > 1 else ''})")
+    finally:
+        torch.set_num_threads(before)
+
+
+def _model_points(checkpoints, dataset, schedules, trajectories, batch, repeats, devices, data_dir, tests, reference,
+                  resolution, neighbour_scale, cpu_note) -> list[dict]:
     if trajectories < 1 or batch < 1 or repeats < 1:
         raise ValueError("trajectories, batch and repeats must be >= 1")
     if tests is None:
         datamodule = SimulationDataModule(dataset=dataset, data_dir=data_dir)
-        datamodule.prepare_data()
+        if not datamodule.path("test").exists():  # only the test split is used
+            datamodule.prepare_data()
         tests = datamodule.trajectories("test")
     reference = reference or f"dataset {dataset} test"
     scored = tests[:trajectories]
     rows = []
     for name, path in checkpoints.items():
         model = load_model(path, map_location="cpu")
+        if neighbour_scale > 1:
+            cap = math.ceil(model.connectivity.max_num_neighbors * neighbour_scale)
+            model.connectivity = dataclasses.replace(model.connectivity, max_num_neighbors=cap)
         chosen = effective_schedules(schedules, model.uses_points)
         for device in devices or default_devices():
             device = torch.device(device)
@@ -157,11 +266,13 @@ def model_points(checkpoints: dict, dataset: str = "plate_small", schedules=("ev
                 pred = split_trajectories(model.rollout(error_batch, schedule), error_batch)
                 true = split_trajectories(error_batch.positions, error_batch)
                 mse = float(np.mean([rollout_mse(p, t)[0] for p, t in zip(pred, true)]))
+                where = str(device) + (cpu_note if device.type == "cpu" else "")
                 rows.append({
-                    "kind": "model", "name": name, "setting": str(schedule), "device": str(device),
+                    "kind": "model", "name": name, "setting": str(schedule), "device": where,
                     "nodes": int(np.mean(np.diff(one.node_offsets))), "steps": steps, "trajectories": len(scored),
                     "ms_per_step_1": ms_one, "batch": batch, "ms_per_step_batched": ms_many,
                     "ms_per_trajectory_step": ms_many / batch, "rollout_mse": mse, "reference": reference,
+                    "resolution": resolution,
                 })
         model.cpu()
     return rows
@@ -190,22 +301,28 @@ def pareto_plot(rows: list[dict], path: str | Path) -> Path:
     positive = ys[ys > 0]
     floor = positive.min() / 10 if len(positive) else 1e-12  # zero errors are drawn here
     shown = np.where(ys > 0, ys, floor)
-    fig, ax = plt.subplots(figsize=(7, 5))
+    fig, ax = plt.subplots(figsize=(9.5, 5))
     resolutions = list(dict.fromkeys(r.get("nodes") for r in rows))
     shades = dict(zip(resolutions, ("black", "dimgray", "darkgray", "silver")))
     for nodes in resolutions:
         sim = [i for i, r in enumerate(rows) if r["kind"] == "simulator" and r.get("nodes") == nodes]
-        if sim:
-            order = sorted(sim, key=lambda i: xs[i])
-            where = f", {nodes} nodes" if len(resolutions) > 1 else ""
+        steps = [i for i in sim if rows[i].get("axis") != "newton tolerance"]
+        tolerances = [i for i in sim if rows[i].get("axis") == "newton tolerance"]
+        where = f", {nodes} nodes" if len(resolutions) > 1 else ""
+        if steps:
+            order = sorted(steps, key=lambda i: xs[i])
             ax.plot(xs[order], shown[order], "-o", color=shades.get(nodes, "black"),
                     label=f"simulator (coarser time steps{where})")
+        if tolerances:
+            ax.scatter(xs[tolerances], shown[tolerances], marker="x", color=shades.get(nodes, "black"),
+                       label=f"simulator (coarser Newton tolerance{where})")
     markers = iter("sD^vP*Xph<>")
     for key in dict.fromkeys((r["name"], r["device"]) for r in rows if r["kind"] != "simulator"):
         idx = [i for i, r in enumerate(rows) if (r["name"], r["device"]) == key and r["kind"] != "simulator"]
         ax.scatter(xs[idx], shown[idx], marker=next(markers, "o"), s=50, label=f"{key[0]} ({key[1]})")
     for i, r in enumerate(rows):
-        label = r["setting"] + (" = reference (error 0)" if ys[i] == 0 else "")
+        label = f"tol {r['newton_tolerance']:g}" if r.get("axis") == "newton tolerance" else r["setting"]
+        label += " = reference (error 0)" if ys[i] == 0 else ""
         if len(resolutions) > 1:
             label += f" [{r.get('nodes')} nodes]"
         ax.annotate(label, (xs[i], shown[i]), textcoords="offset points", xytext=(5, 4), fontsize=7)
@@ -218,7 +335,7 @@ def pareto_plot(rows: list[dict], path: str | Path) -> Path:
     ax.set_xlabel("ms per trajectory-step")
     ax.set_ylabel("rollout MSE")
     ax.set_title("speed / accuracy trade")
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside: the points stay visible
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     return save_figure(fig, path)
@@ -226,28 +343,44 @@ def pareto_plot(rows: list[dict], path: str | Path) -> Path:
 
 def tradeoff(dataset: str = "plate_small", checkpoints: dict | None = None, trajectories: int = 4, coarsen=(1, 2, 5),
              output_dir: str | Path = "lightning_logs/tradeoff", schedules=("every:1", "never"), batch: int = 32,
-             repeats: int = 3, grid_nodes=None, data_dir: str | None = None) -> list[dict]:
-    """Simulator and model points at each mesh resolution in `grid_nodes` (nodes per side; an int,
-    a list, or None for the preset's); writes <output_dir>/tradeoff.csv and tradeoff.png and
+             repeats: int = 3, grid_nodes=None, data_dir: str | None = None, resolution=None,
+             newton_tolerances=(), threads: int | None = None, simulator: bool = True) -> list[dict]:
+    """Simulator and model points at each mesh resolution level in `resolution` (an int, a list,
+    or None for the preset's; `grid_nodes`: its older, plate-only name), the simulator's time-step
+    coarsenings and Newton tolerances at each (`threads`: torch threads of the model rollouts;
+    `simulator` False: the models only); writes <output_dir>/tradeoff.csv and tradeoff.png and
     prints the table."""
+    if not simulator and not checkpoints:
+        raise ValueError("nothing to measure: no checkpoints and the simulator left out")
     config = load_config(dataset)
-    preset = int(config["scene"].get("grid_nodes", 0)) or None
-    resolutions = [preset] if grid_nodes is None else [int(n) for n in np.atleast_1d(grid_nodes)]
+    if grid_nodes is not None and resolution is not None:
+        raise ValueError("give resolution or grid_nodes (its older name), not both")
+    levels = resolution if resolution is not None else grid_nodes
+    if levels is None:
+        preset, resolutions = None, [None]  # the preset's own mesh: no resolution levels needed
+    else:
+        preset = int(resolution_module(config["scene"]["name"]).resolution(config["scene"]))
+        resolutions = [int(n) for n in np.atleast_1d(levels)]
+    out = Path(output_dir)
     rows = []
-    for nodes in resolutions:
-        rows += simulator_points(config, trajectories, coarsen, grid_nodes=nodes)
-        if not checkpoints:
-            continue
-        if nodes == preset:
+    for level in resolutions:
+        if simulator:
+            rows += simulator_points(config, trajectories, coarsen, resolution=level,
+                                     newton_tolerances=newton_tolerances)
+        if checkpoints and (level is None or level == preset):
             rows += model_points(checkpoints, dataset, schedules, trajectories, batch=batch, repeats=repeats,
-                                 data_dir=data_dir)
-        else:
-            tests, directory = resolution_tests({**config, "output": data_dir or config["output"]}, nodes, trajectories)
+                                 data_dir=data_dir, resolution=preset_resolution(config["scene"]), threads=threads)
+        elif checkpoints:
+            tests, directory = resolution_tests({**config, "output": data_dir or config["output"]}, level, trajectories)
+            dim = int(getattr(SCENES[config["scene"]["name"]], "DIM", 2))
             rows += model_points(checkpoints, dataset, schedules, trajectories, batch=batch, repeats=repeats,
-                                 tests=tests, reference=f"{directory} test (models trained at {preset} per side)")
+                                 tests=tests, reference=f"{directory} test (models trained at resolution {preset})",
+                                 resolution=level, neighbour_scale=((level - 1) / (preset - 1)) ** dim,
+                                 threads=threads)
+        tradeoff_csv(rows, out / "tradeoff.csv")  # so far: a later level's failure keeps these rows
+        print(f"resolution {'(preset)' if level is None else level}: {len(rows)} rows so far", flush=True)
     for row, on_front in zip(rows, pareto_mask(rows)):
         row["pareto"] = on_front
-    out = Path(output_dir)
     csv_path, png_path = tradeoff_csv(rows, out / "tradeoff.csv"), pareto_plot(rows, out / "tradeoff.png")
     print_table(rows, COLUMNS)
     print(f"\nwrote {csv_path} and {png_path}")

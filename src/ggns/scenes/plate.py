@@ -171,3 +171,15 @@ def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajec
         },
         diagnostics=diagnostics,
     )
+
+
+def resolution(scene: dict) -> int:
+    """The mesh resolution level of a plate scene config (`bench tradeoff`): nodes per side."""
+    return int(scene["grid_nodes"])
+
+
+def with_resolution(scene: dict, level: int) -> dict:
+    """A copy of the scene config at mesh resolution `level` = nodes per side (level^2 nodes)."""
+    if int(level) < 2:
+        raise ValueError(f"plate mesh resolution must be >= 2 nodes per side, got {level}")
+    return {**scene, "grid_nodes": int(level)}

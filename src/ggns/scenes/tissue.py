@@ -201,3 +201,31 @@ def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajec
         },
         diagnostics=diagnostics,
     )
+
+
+def resolution(scene: dict) -> int:
+    """The mesh resolution level of a tissue scene config (`bench tradeoff`): nodes along x."""
+    return int(scene["block"]["nodes"][0])
+
+
+def with_resolution(scene: dict, level: int) -> dict:
+    """A copy of the scene config at mesh resolution `level` = nodes along x (`bench tradeoff`).
+    The block keeps its extent; the element counts along y and z are the preset's scaled by the
+    same factor as along x, (level - 1) / (nodes_x - 1), rounded, at least one (2 node layers), so
+    the elements keep the preset's near-cubic shape and the preset maps to itself ([10, 9, 4]:
+    level 7 gives [7, 6, 3] = 126 nodes, 13 gives [13, 12, 5] = 780, 19 gives [19, 17, 7] = 2261).
+    The grasp radius stays in metres (a finer mesh holds more nodes of the same patch) but is
+    scaled with the coarser of the x and y spacings on a coarser mesh, so the gripper holds the
+    grasped node's neighbours there too, never a single node (a point load, `grasped_patch`);
+    the grasp candidates are capped at the top layer's node count."""
+    nodes = [int(n) for n in scene["block"]["nodes"]]
+    level = int(level)
+    if level < 2:
+        raise ValueError(f"tissue mesh resolution must be >= 2 nodes along x, got {level}")
+    factor = (level - 1) / (nodes[0] - 1)
+    scaled = [level] + [max(1, round((n - 1) * factor)) + 1 for n in nodes[1:]]
+    gripper = dict(scene["gripper"])
+    coarser = max((n - 1) / (m - 1) for n, m in zip(nodes[:2], scaled[:2]))  # spacing ratio, x or y
+    gripper["grasp_radius"] = float(gripper["grasp_radius"]) * max(1.0, coarser)
+    gripper["candidates"] = min(int(gripper["candidates"]), scaled[0] * scaled[1])
+    return {**scene, "block": {**scene["block"], "nodes": scaled}, "gripper": gripper}

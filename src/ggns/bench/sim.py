@@ -194,3 +194,59 @@ def bench_tangents(preset: str = "tissue_tiny", steps: int = 100, seeds: int = 3
               f"{row['failed']}  ms/frame {row['ms/frame (median)']:6.1f}  Newton mean {row['newton mean']:5.2f}  "
               f"max {row['newton max']:3d}  min det F {row['min det F']:6.2f}  max |x - x_{tangents[0]}| {row['max position difference, m']:.1e} m")
     return {"rows": rows, "summary": summary}
+
+
+def bench_contact(preset: str = "cavity", seeds: Sequence[int] = (11, 12), youngs_moduli: Sequence[float] | None = None,
+                  poissons_ratios: Sequence[float] | None = None, overrides: Sequence[str] = ()) -> list[dict]:
+    """The cavity's contact and materials, for choosing E (docs/cavity.md): every seed (one cavity
+    shape and gripper path per seed) is simulated with every material, without cameras, on one torch
+    thread. `youngs_moduli`: one E for all materials instead of the preset's; `poissons_ratios`: these
+    nu instead of the preset's. Per trajectory: the RMS displacement from rest (all nodes and steps),
+    the smallest element volume ratio (< 0: inverted), the deepest cavity node in a finger (the
+    solver's contact tolerance bounds it) and the deepest finger vertex in the wall (between nodes),
+    Newton iterations, the largest kinetic energy and seconds; per seed, the MSE between the
+    trajectories of each pair of materials (what a model told the material can gain). Prints a table
+    and returns its rows."""
+    from .timing import NoSensor
+
+    config = load_config(preset, list(overrides))
+    scene = config["scene"]
+    materials = [dict(m) for m in scene["materials"]]
+    if poissons_ratios is not None:
+        materials = [{"poissons_ratio": float(nu), "youngs_modulus": materials[min(i, len(materials) - 1)]["youngs_modulus"]}
+                     for i, nu in enumerate(poissons_ratios)]
+    if youngs_moduli is not None:
+        materials = [dict(m, youngs_modulus=float(e)) for m in materials for e in youngs_moduli]
+    scene["materials"] = materials
+    module = SCENES[scene["name"]]
+    rows = []
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for seed in seeds:
+            positions = {}
+            for index, material in enumerate(materials):
+                start = time.perf_counter()
+                traj = module.make_trajectory(config, index, int(seed), NoSensor(3))
+                seconds = time.perf_counter() - start
+                d = traj.diagnostics
+                positions[index] = traj.positions
+                rows.append({"seed": int(seed), "nu": material["poissons_ratio"], "E": material["youngs_modulus"],
+                             "rms_displacement": float(np.sqrt(((traj.positions - traj.rest_positions) ** 2).mean())),
+                             "min_volume_ratio": min_volume_ratio(traj.positions, traj.rest_positions, traj.cells),
+                             "node_penetration": float(d["max_penetration"].max()),
+                             "finger_penetration": float(d.get("finger_penetration", np.zeros(1)).max()),
+                             "newton": int(d["newton_iterations"].sum()), "kinetic_max": float(d["kinetic_energy"].max()),
+                             "seconds": seconds})
+            for a in range(len(materials)):
+                for b in range(a + 1, len(materials)):
+                    mse = float(((positions[a] - positions[b]) ** 2).mean())
+                    print(f"  seed {seed}: material {a} ({materials[a]}) vs {b} ({materials[b]}): MSE {mse:.3e}")
+                    rows.append({"seed": int(seed), "pair": f"{a}-{b}", "material_mse": mse})
+    finally:
+        torch.set_num_threads(threads)
+    print(f"bench contact: preset {preset!r}, seeds {list(seeds)}")
+    for row in rows:
+        if "pair" not in row:
+            print("  " + "  ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
+    return rows

@@ -318,3 +318,21 @@ def finger_penetration(positions: np.ndarray, cells: np.ndarray, vertices: np.nd
         phi = scene.compute_signed_distance(o3d.core.Tensor(vertices[t][near].astype(np.float32))).numpy()
         depth[t] = float(max(0.0, -phi.min()))
     return depth
+
+
+def resolution(scene: dict) -> int:
+    """The mesh resolution level of a cavity scene config (`bench tradeoff`): nodes per ring."""
+    return int(scene["cavity"]["ring_nodes"])
+
+
+def with_resolution(scene: dict, level: int) -> dict:
+    """A copy of the scene config at mesh resolution `level` = nodes per ring (`bench tradeoff`). The
+    rings up the height are the preset's scaled by the same factor, level / ring_nodes, rounded (at
+    least 2), so the wall's elements keep their shape; the wall stays one element thick (25 -> 15
+    levels, the preset; 16 -> 10 levels, 320 nodes; 40 -> 23 levels, 1,840 nodes)."""
+    cav = scene["cavity"]
+    level = int(level)
+    if level < 3:
+        raise ValueError(f"cavity mesh resolution must be >= 3 nodes per ring, got {level}")
+    levels = max(2, round((int(cav["levels"]) - 1) * level / int(cav["ring_nodes"])) + 1)
+    return {**scene, "cavity": {**cav, "ring_nodes": level, "levels": levels}}

@@ -1,0 +1,173 @@
+"""The Cavity Grasping scene (`ggns.scenes.cavity`) on its tiny preset: real simulation with real
+contact, real Open3D raycasting and real HDF5 files, the scale targets, and a fit + test + export
+through the CLI."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+from ggns.__main__ import main
+from ggns.config import load_config
+from ggns.data.generate import generate
+from ggns.data.schema import read_trajectories
+from ggns.geometry import boundary_facets, min_volume_ratio
+from ggns.scenes import cavity
+from ggns.sensors.camera import DepthSensor, SensorConfig
+from ggns.sim.contact import signed_distance
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """The tiny preset's splits (3/2/2 trajectories of 12 steps: the gripper starts at its grasp pose
+    and closes fast) and its config; the train split's trajectories (one per material)."""
+    out = tmp_path_factory.mktemp("cavity_tiny")
+    config = load_config("cavity_tiny", [f"output={out}"])
+    train, _, _ = generate(config, ["train", "val", "test"], progress=False)
+    return config, read_trajectories(train)
+
+
+def _finger_boxes(config, traj) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Both fingers' contact boxes per step, rebuilt from the trajectory's parameters."""
+    scene = config["scene"]
+    rng = np.random.default_rng(traj.seed)
+    spec = cavity.sample_spec(scene, 0, rng)
+    centres, gaps, _ = cavity.gripper_schedule(scene, spec)
+    box, faces = cavity.finger_mesh(scene, coarse=True)
+    return [(torch.as_tensor(cavity.gripper_vertices(box, centres[t], spec.azimuth, gaps[t])), torch.as_tensor(faces))
+            for t in range(traj.num_steps)]
+
+
+def test_tube_mesh_counts_and_its_surface_graph():
+    """750 nodes, every one on the wall's boundary; the graph is that boundary's triangulation, a
+    closed genus-1 surface with exactly 3 V undirected edges (the paper's 4,500 directed)."""
+    config = load_config("cavity")
+    scene = config["scene"]
+    spec = cavity.CavitySpec(0, 0.5, 0.6, 0.0, 0.5, (0.0, 0.0, 0.0), 0.3)
+    rest, cells, fixed = cavity.cavity_mesh(scene, spec)
+    facets = boundary_facets(cells, rest)
+    edges = cavity.surface_edges(facets)
+    assert rest.shape == (750, 3) and cells.shape == (6 * 25 * 14, 4)
+    assert len(np.unique(facets)) == 750  # no interior node
+    assert 2 * len(edges) == 4500 and len(rest) - len(edges) + len(facets) == 0  # Euler characteristic 0: a torus
+    assert fixed.sum() == 50 and np.flatnonzero(fixed).tolist() == list(range(50))  # the bottom rim, numbered first
+    assert np.allclose(rest[fixed, 2], scene["cavity"]["bottom_z"])
+    outer = np.linalg.norm(rest[25:50, :2], axis=1)  # level 0, outer wall: the bottom diameter
+    np.testing.assert_allclose(outer, 0.25)
+    finger, faces = cavity.finger_mesh(scene)
+    assert 2 * len(finger) == 636 and faces.max() == len(finger) - 1
+
+
+def test_fingers_close_and_squeeze_without_penetration(tiny):
+    config, trajectories = tiny
+    tolerance = config["solver"]["contact_tolerance"]
+    assert sorted(t.poissons_ratio for t in trajectories) == [-0.9, 0.0, 0.49]
+    for traj in trajectories:
+        assert np.isfinite(traj.positions).all() and np.isfinite(traj.points).all()
+        assert traj.collider_positions.shape == (traj.num_steps, 636, 3)
+        # the fingers closed: the two fingers' mean positions came closer
+        V = 318
+        gap = np.linalg.norm(traj.collider_positions[:, :V].mean(1) - traj.collider_positions[:, V:].mean(1), axis=1)
+        assert gap[-1] < gap[0] - 0.2
+        # the cavity deformed, the fixed rim stayed exactly
+        free = ~traj.fixed
+        assert np.linalg.norm(traj.positions[-1, free] - traj.rest_positions[free], axis=1).max() > 0.03
+        np.testing.assert_array_equal(traj.positions[:, traj.fixed],
+                                      np.broadcast_to(traj.rest_positions[traj.fixed], (traj.num_steps, 50, 3)))
+        # no free cavity node inside a finger beyond the contact tolerance, checked independently of the solver
+        for t, fingers in enumerate(_finger_boxes(config, traj)):
+            x = torch.as_tensor(traj.positions[t][free])
+            for k in range(2):
+                vertices = fingers[0][8 * k: 8 * (k + 1)]
+                phi, _ = signed_distance(x, vertices, fingers[1])
+                assert -phi.min().item() <= tolerance * (1 + 1e-6)
+        assert traj.diagnostics["max_penetration"].max() <= tolerance
+        assert traj.diagnostics["max_penetration"][-1] >= 0 and traj.diagnostics["contact_work"].sum() > 0
+        assert min_volume_ratio(traj.positions, traj.rest_positions, traj.cells) > 0.3
+        # the fingers' own corners may pass between nodes: measured, bounded by the wall's thickness
+        assert 0 <= traj.diagnostics["finger_penetration"].max() < config["scene"]["cavity"]["thickness"]
+
+
+@pytest.mark.parametrize("nu", [-0.95, 0.499])
+def test_extreme_poissons_ratios_stay_finite_and_uninverted(nu):
+    """Seed 5's fingers reach the wall at step 4 and squeeze it by 22 % of its diameter by step 8."""
+    config = load_config("cavity_tiny", ["scene.num_steps=9"])
+    config["scene"]["materials"] = [{"poissons_ratio": nu, "youngs_modulus": 20000.0}]
+    sensor = DepthSensor(SensorConfig.from_dict(config["sensor"]))
+    traj = cavity.make_trajectory(config, 0, 5, sensor)
+    assert all(np.isfinite(v).all() for v in traj.diagnostics.values()) and np.isfinite(traj.positions).all()
+    assert min_volume_ratio(traj.positions, traj.rest_positions, traj.cells) > 0.2
+    assert traj.diagnostics["contact_work"].sum() > 0  # it was squeezed
+
+
+def test_fewer_cameras_never_see_what_more_cameras_would_not(tiny):
+    """The same deformed state seen by the first, the first two and all five cameras, each with a
+    voxel far below the ray spacing (so the cloud is the raw hits): every hit of a camera subset is a
+    hit of the larger set; and the default sensors' point counts grow with the cameras."""
+    config, trajectories = tiny
+    traj = trajectories[0]
+    t = traj.num_steps - 1
+    surface = boundary_facets(traj.cells, traj.rest_positions)
+    clouds = {}
+    for n in (1, 2, 5):
+        sensor = dict(config["sensor"], cameras=config["sensor"]["cameras"][:n], voxel_size=1e-5)
+        clouds[n] = DepthSensor(SensorConfig.from_dict(sensor)).observe(
+            traj.positions[t], traj.cells, traj.collider_positions[t], traj.collider_faces, surface=surface)
+    assert 0 < len(clouds[1]) < len(clouds[2]) < len(clouds[5])
+    for small, large in ((1, 2), (2, 5), (1, 5)):
+        distance, _ = cKDTree(clouds[large]).query(clouds[small])
+        assert distance.max() < 1e-4
+    counts = [len(DepthSensor(SensorConfig.from_dict(load_config(name)["sensor"])).observe(
+        traj.positions[t], traj.cells, traj.collider_positions[t], traj.collider_faces, surface=surface))
+        for name in ("cavity_cpu_cam1", "cavity_cpu_cam2", "cavity_cpu")]
+    assert counts[0] < counts[1] < counts[2]
+    # the fingers occlude: without them the cameras see more of the squeezed wall
+    bare = DepthSensor(SensorConfig.from_dict(config["sensor"])).observe(traj.positions[t], traj.cells, None, None)
+    assert len(bare) > counts[2]
+
+
+def test_scale_within_the_targets(tiny):
+    """The tiny preset's counts against conf/geometry/cavity.yaml (points, edges, world edges) and the
+    paper's (nodes, directed mesh edges, collider nodes)."""
+    from ggns.graphs.connectivity import load_connectivity
+    from ggns.graphs.scale import measure
+
+    config, trajectories = tiny
+    geometry = load_config("cavity", kind="geometry")
+    values = measure(trajectories, load_connectivity(geometry["graph"]), load_connectivity(geometry["baseline_graph"]),
+                     geometry["noise_std"], stride=4)
+    for name in ("points_per_step", "edges_per_graph", "world_edges_per_node", "smallest_mesh_edge",
+                 "mesh_point_neighbours"):
+        lo, hi = geometry["targets"][name]
+        assert lo <= values[name] <= hi, (name, values[name])
+    for traj in trajectories:
+        assert traj.rest_positions.shape == (750, 3) and 2 * len(traj.edges) == 4500
+        assert traj.collider_positions.shape[1] == 636
+
+
+@pytest.mark.parametrize("model", ["ggns", "mgn"])
+def test_fit_test_and_export_through_the_cli_on_tiny_cavity(tiny, tmp_path, model):
+    config, _ = tiny
+    data_dir = config["output"]
+    common = ["--config", f"conf/cavity/{model}.yaml", "--data.dataset", "cavity_tiny", "--data.data_dir", str(data_dir),
+              "--data.generate_missing", "false", "--data.batch_size", "8",
+              "--trainer.logger.init_args.save_dir", str(tmp_path), "--trainer.logger.init_args.version", "v",
+              *(["--model.init_args.eval_schedules", '["every:1", "every:2", "never"]'] if model == "ggns" else []),
+              "--model.init_args.latent", "8", "--model.init_args.blocks", "1", "--trainer.enable_progress_bar", "false",
+              "--trainer.enable_model_summary", "false"]
+    main(["fit", *common, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
+          "--trainer.limit_val_batches", "1", "--trainer.check_val_every_n_epoch", "1"])
+    checkpoint = tmp_path / f"cavity_{model}" / "v" / "checkpoints" / "last.ckpt"
+    assert checkpoint.is_file()
+    main(["test", *common[:-4], "--trainer.logger.init_args.version", "test", "--ckpt_path", str(checkpoint)])
+    metrics = (tmp_path / f"cavity_{model}" / "test" / "test_metrics.md").read_text()
+    assert "rollout_mse_never" in metrics and "m10_mse" in metrics and "rollout_iou_never" in metrics  # 3D volume IoU
+    schedule = "every:2" if model == "ggns" else "never"
+    main(["export", "--checkpoint", str(checkpoint), "--dataset", "cavity_tiny", "--data-dir", str(data_dir), "--split", "test",
+          "--schedule", schedule, "--output", str(tmp_path / "export")])
+    truth = sorted((tmp_path / "export" / "truth").glob("*.vtu"))
+    assert len(truth) == 12
+    if model == "ggns":
+        assert "rollout_mse_k1" in metrics
+        assert len(list((tmp_path / "export" / "points").glob("*.vtu"))) == 6  # steps 0, 2, .., 10

@@ -127,6 +127,41 @@ def test_fewer_cameras_never_see_what_more_cameras_would_not(tiny):
     assert len(bare) > counts[2]
 
 
+def test_other_cameras_on_stored_states_equal_a_full_generation(tiny, tmp_path):
+    """`states_from`: the tiny trajectories observed again with one camera are bit for bit what a full
+    generation with one camera makes (states, point clouds, seeds); a source preset of another seed,
+    a noisy sensor or too short a source file are refused with the reason."""
+    from ggns.config import CONF_DIR
+    from ggns.data.schema import SplitReader
+
+    config, trajectories = tiny
+    source = tmp_path / "source.yaml"
+    source.write_text(f"base: {CONF_DIR / 'data' / 'cavity_tiny.yaml'}\noutput: {config['output']}\n")
+    one_camera = dict(config, sensor=dict(config["sensor"], cameras=config["sensor"]["cameras"][:1]),
+                      splits=dict(config["splits"], train=2))
+    reobserved, = generate(dict(one_camera, states_from=str(source), output=str(tmp_path / "re")), ["train"], progress=False)
+    full, = generate(dict(one_camera, output=str(tmp_path / "full")), ["train"], progress=False)
+    again, direct = read_trajectories(reobserved), read_trajectories(full)
+    assert len(again) == len(direct) == 2
+    for a, b, five in zip(again, direct, trajectories):
+        assert a.seed == b.seed == five.seed
+        for name in ("positions", "collider_positions", "points", "point_offsets", "cells", "edges"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+        assert len(a.points) < len(five.points)  # one camera sees less than five
+    with SplitReader(reobserved) as reader:  # the file names its source; its sensor is its own
+        assert reader.generator_config["states_from"] == str(source)
+        assert len(reader.generator_config["sensor"]["cameras"]) == 1
+    with pytest.raises(ValueError, match="seed"):
+        generate(dict(one_camera, states_from=str(source), seed=1, output=str(tmp_path / "x")), ["train"], progress=False)
+    with pytest.raises(ValueError, match="noise"):
+        noisy = dict(one_camera, sensor=dict(one_camera["sensor"], noise_std=0.001))
+        generate(dict(noisy, states_from=str(source), output=str(tmp_path / "y")), ["train"], progress=False)
+    with pytest.raises(ValueError, match="holds 3 trajectories"):
+        generate(dict(one_camera, states_from=str(source), splits=dict(config["splits"], train=4),
+                      output=str(tmp_path / "z")), ["train"], progress=False)
+    assert not (tmp_path / "z" / "train.h5").exists()
+
+
 def test_scale_within_the_targets(tiny):
     """The tiny preset's counts against conf/geometry/cavity.yaml (points, edges, world edges) and the
     paper's (nodes, directed mesh edges, collider nodes)."""

@@ -16,10 +16,14 @@ cameras use them too). Nodes are numbered ring by ring from the bottom: level j,
 
 Gripper: two fingers, each a box (`gripper.finger`: width across, height, thickness) whose
 surface is a structured triangle mesh (the boundary of `geometry.box_tet_mesh` with
-`finger.nodes` nodes per axis): 2 x 324 = 648 collider nodes (paper: 636). The fingers are the
+`finger.nodes` nodes per axis): 2 x 318 = 636 collider nodes (paper: 636). The fingers are the
 simulator's rigid contact surfaces (node-to-surface, frictionless: the fixed bottom rim holds the
 cavity, so no friction is needed to squeeze it) and occlude the cameras. In the trajectory both
-fingers form one collider ([T, 648, 3] vertices, their triangles).
+fingers form one collider ([T, 636, 3] vertices, their triangles).
+
+Cameras: `observe_trajectory` (the fingers occlude; the wall's boundary is found once). The
+generator calls it after the simulation, and again on stored states to give the same trajectories
+other cameras (`states_from` in a data preset, `ggns.data.generate`).
 
 "Radii" (paper: "between 87.5 % and 50 % of the maximum possible gripping width") are read as the
 cavity's outer DIAMETER at its bottom and at its top, each drawn from U[0.5, 0.875] x the
@@ -27,6 +31,7 @@ gripper's maximum opening, so that the open gripper straddles every cavity.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -270,10 +275,7 @@ def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajec
     positions, diagnostics = simulate(rest, cells, fixed, material, solver,
                                       [(boxes[:, :8], box_faces), (boxes[:, 8:], box_faces)], substeps)
     diagnostics["finger_penetration"] = finger_penetration(positions, cells, vertices)
-    surface = boundary_facets(cells, rest)
-    points, offsets = pack_point_clouds([sensor.observe(positions[t], cells, vertices[t], faces, rng, surface=surface)
-                                         for t in range(T)])
-    return Trajectory(
+    unobserved = Trajectory(
         rest_positions=rest,
         cells=cells,
         edges=surface_edges(boundary_facets(cells)),
@@ -281,8 +283,8 @@ def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajec
         fixed=fixed,
         collider_faces=faces,
         collider_positions=vertices,
-        points=points,
-        point_offsets=offsets,
+        points=np.zeros((0, 3), dtype=np.float32),
+        point_offsets=np.zeros(T + 1, dtype=np.int64),
         youngs_modulus=material.youngs_modulus,
         poissons_ratio=material.poissons_ratio,
         seed=int(seed),
@@ -297,6 +299,19 @@ def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajec
         },
         diagnostics=diagnostics,
     )
+    return observe_trajectory(unobserved, sensor, rng)
+
+
+def observe_trajectory(trajectory: Trajectory, sensor, rng: np.random.Generator | None = None) -> Trajectory:
+    """The trajectory with the point clouds `sensor` takes of its states (any it had are replaced):
+    the fingers (its collider) occlude and give no points, the wall's boundary is found once. rng:
+    the sensor's noise draws (needed when its noise_std > 0)."""
+    surface = boundary_facets(trajectory.cells, trajectory.rest_positions)
+    points, offsets = pack_point_clouds([
+        sensor.observe(trajectory.positions[t], trajectory.cells, trajectory.collider_positions[t],
+                       trajectory.collider_faces, rng, surface=surface)
+        for t in range(trajectory.num_steps)])
+    return dataclasses.replace(trajectory, points=points, point_offsets=offsets)
 
 
 def finger_penetration(positions: np.ndarray, cells: np.ndarray, vertices: np.ndarray) -> np.ndarray:

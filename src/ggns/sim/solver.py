@@ -149,6 +149,7 @@ class Simulator:
         """Minimize `potential` over the free dofs from x by Newton with Armijo line search.
         gradient_hessian(x, tangent) -> gradient [N, d], Newton matrix."""
         free, tangent = self.free, self.config.tangent
+        known = None  # potential(x) when the last line search computed it (the accepted trial): not again
         for it in range(1, self.config.max_newton_iterations + 1):
             g, H = gradient_hessian(x, tangent)
             g = g.reshape(-1)[free]
@@ -169,11 +170,14 @@ class Simulator:
             dx = dx.view_as(x)
             alpha = 1.0
             if dx_free.abs().max() > self.line_search_threshold:
-                phi0, slope = potential(x), (g * dx_free).sum()
-                while potential(x + alpha * dx) > phi0 + 1e-4 * alpha * slope:
+                phi0 = potential(x) if known is None else known
+                slope = (g * dx_free).sum()
+                while (known := potential(x + alpha * dx)) > phi0 + 1e-4 * alpha * slope:
                     alpha *= 0.5
                     if alpha < 1e-10:
                         raise SimulationError(f"{what}: line search failed at Newton iteration {it}")
+            else:
+                known = None
             x = x + alpha * dx
             if not torch.isfinite(x).all():
                 raise SimulationError(f"{what}: non-finite positions at Newton iteration {it}")

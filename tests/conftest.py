@@ -170,3 +170,25 @@ def tiny_registry(cli_data, tmp_path_factory):
     finally:
         pretrained.REGISTRY = saved
     return registry, spec
+
+
+# ---- the 3D tasks through the Lightning CLI (test_tissue, test_cavity) ------------------------------
+def fit_and_test_3d(task: str, model: str, data_dir, tmp_path, latent: int, blocks: int, extra=()) -> tuple:
+    """`fit` one epoch (2 batches) and `test` the last checkpoint of conf/<task>/<model>.yaml on the
+    <task>_tiny data in data_dir, through the real CLI; returns (checkpoint path, test_metrics.md text),
+    after checking that the test reported the full rollout, the m+10 metric and the 3D volume IoU."""
+    from ggns.__main__ import main
+
+    common = ["--config", f"conf/{task}/{model}.yaml", "--data.dataset", f"{task}_tiny", "--data.data_dir", str(data_dir),
+              "--data.generate_missing", "false", "--data.batch_size", "8",
+              "--trainer.logger.init_args.save_dir", str(tmp_path), *extra,
+              "--model.init_args.latent", str(latent), "--model.init_args.blocks", str(blocks),
+              "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
+    main(["fit", *common, "--trainer.logger.init_args.version", "v", "--trainer.max_epochs", "1",
+          "--trainer.limit_train_batches", "2", "--trainer.limit_val_batches", "1", "--trainer.check_val_every_n_epoch", "1"])
+    checkpoint = tmp_path / f"{task}_{model}" / "v" / "checkpoints" / "last.ckpt"
+    assert checkpoint.is_file()
+    main(["test", *common, "--trainer.logger.init_args.version", "test", "--ckpt_path", str(checkpoint)])
+    metrics = (tmp_path / f"{task}_{model}" / "test" / "test_metrics.md").read_text()
+    assert "rollout_mse_never" in metrics and "m10_mse" in metrics and "rollout_iou_never" in metrics  # 3D volume IoU
+    return checkpoint, metrics

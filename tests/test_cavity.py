@@ -17,6 +17,8 @@ from ggns.scenes import cavity
 from ggns.sensors.camera import DepthSensor, SensorConfig
 from ggns.sim.contact import signed_distance
 
+from conftest import fit_and_test_3d
+
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
@@ -185,19 +187,8 @@ def test_scale_within_the_targets(tiny):
 def test_fit_test_and_export_through_the_cli_on_tiny_cavity(tiny, tmp_path, model):
     config, _ = tiny
     data_dir = config["output"]
-    common = ["--config", f"conf/cavity/{model}.yaml", "--data.dataset", "cavity_tiny", "--data.data_dir", str(data_dir),
-              "--data.generate_missing", "false", "--data.batch_size", "8",
-              "--trainer.logger.init_args.save_dir", str(tmp_path), "--trainer.logger.init_args.version", "v",
-              *(["--model.init_args.eval_schedules", '["every:1", "every:2", "never"]'] if model == "ggns" else []),
-              "--model.init_args.latent", "8", "--model.init_args.blocks", "1", "--trainer.enable_progress_bar", "false",
-              "--trainer.enable_model_summary", "false"]
-    main(["fit", *common, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
-          "--trainer.limit_val_batches", "1", "--trainer.check_val_every_n_epoch", "1"])
-    checkpoint = tmp_path / f"cavity_{model}" / "v" / "checkpoints" / "last.ckpt"
-    assert checkpoint.is_file()
-    main(["test", *common[:-4], "--trainer.logger.init_args.version", "test", "--ckpt_path", str(checkpoint)])
-    metrics = (tmp_path / f"cavity_{model}" / "test" / "test_metrics.md").read_text()
-    assert "rollout_mse_never" in metrics and "m10_mse" in metrics and "rollout_iou_never" in metrics  # 3D volume IoU
+    schedules = ["--model.init_args.eval_schedules", '["every:1", "every:2", "never"]'] if model == "ggns" else []
+    checkpoint, metrics = fit_and_test_3d("cavity", model, data_dir, tmp_path, latent=8, blocks=1, extra=schedules)
     schedule = "every:2" if model == "ggns" else "never"
     main(["export", "--checkpoint", str(checkpoint), "--dataset", "cavity_tiny", "--data-dir", str(data_dir), "--split", "test",
           "--schedule", schedule, "--output", str(tmp_path / "export")])

@@ -14,6 +14,8 @@ from ggns.geometry import boundary_facets, min_volume_ratio
 from ggns.scenes import tissue
 from ggns.sensors.camera import DepthSensor, PinholeCamera, SensorConfig
 
+from conftest import fit_and_test_3d
+
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
@@ -108,18 +110,7 @@ def test_a_known_occluder_hides_what_is_behind_it():
 def test_fit_and_test_through_the_cli_on_tiny_tissue(tiny, tmp_path, model):
     config, _ = tiny
     data_dir = config["output"]
-    common = ["--config", f"conf/tissue/{model}.yaml", "--data.dataset", "tissue_tiny", "--data.data_dir", str(data_dir),
-              "--data.generate_missing", "false", "--data.batch_size", "8",
-              "--trainer.logger.init_args.save_dir", str(tmp_path), "--trainer.logger.init_args.version", "v",
-              "--model.init_args.latent", "16", "--model.init_args.blocks", "2", "--trainer.enable_progress_bar", "false",
-              "--trainer.enable_model_summary", "false"]
-    main(["fit", *common, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
-          "--trainer.limit_val_batches", "1", "--trainer.check_val_every_n_epoch", "1"])
-    checkpoint = tmp_path / f"tissue_{model}" / "v" / "checkpoints" / "last.ckpt"
-    assert checkpoint.is_file()
-    main(["test", *common[:-4], "--trainer.logger.init_args.version", "test", "--ckpt_path", str(checkpoint)])
-    metrics = (tmp_path / f"tissue_{model}" / "test" / "test_metrics.md").read_text()
-    assert "rollout_mse_never" in metrics and "m10_mse" in metrics and "rollout_iou_never" in metrics  # 3D volume IoU
+    checkpoint, metrics = fit_and_test_3d("tissue", model, data_dir, tmp_path, latent=16, blocks=2)
     if model == "ggns":
         assert "rollout_mse_k1" in metrics
         # the same rollout as ParaView files: truth, the model, the point clouds

@@ -123,12 +123,6 @@ def gripper_vertices(finger: np.ndarray, centre: np.ndarray, azimuth: float, gap
     return np.concatenate([plus, minus]) + centre
 
 
-def cavity_material(scene: dict, index: int) -> Material:
-    entry = scene["materials"][index]
-    return Material(float(entry["youngs_modulus"]), float(entry["poissons_ratio"]), scene["density"],
-                    scene["rayleigh_mass"], scene["rayleigh_stiffness"])
-
-
 def cavity_mesh(scene: dict, spec: CavitySpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rest positions [N, 3], tetrahedra [C, 4] and fixed mask [N] (the bottom rim: both walls' lowest ring)."""
     cav = scene["cavity"]
@@ -215,7 +209,7 @@ def check_config(config: dict) -> None:
     if not scene["materials"]:
         raise ValueError("scene.materials must list at least one {poissons_ratio, youngs_modulus}")
     for index in range(len(scene["materials"])):
-        cavity_material(scene, index)
+        Material.listed(scene, index)
     SolverConfig(dt=scene["frame_dt"] / int(scene["substeps"]), **config["solver"])
     T = int(scene["num_steps"])
     if T < 2:
@@ -269,7 +263,7 @@ def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajec
     faces = np.concatenate([finger_faces, finger_faces + V])
     box, box_faces = finger_mesh(scene, coarse=True)
     boxes = np.stack([gripper_vertices(box, centres[t], spec.azimuth, gaps[t]) for t in range(T)])
-    material = cavity_material(scene, spec.material)
+    material = Material.listed(scene, spec.material)
     substeps = int(scene["substeps"])
     solver = SolverConfig(dt=scene["frame_dt"] / substeps, **config["solver"])
     positions, diagnostics = simulate(rest, cells, fixed, material, solver,

@@ -73,8 +73,7 @@ def plate_mesh(scene: dict, shape_id: int) -> tuple[np.ndarray, np.ndarray, np.n
 
 def plate_material(scene: dict, poissons_ratio: float) -> Material:
     """The plate's material for one Poisson's ratio (2D idealization: scene.plane)."""
-    return Material(scene["youngs_modulus"], float(poissons_ratio), scene["density"], scene["rayleigh_mass"],
-                    scene["rayleigh_stiffness"], plane=scene.get("plane", "strain"))
+    return Material.of_scene(scene, scene["youngs_modulus"], poissons_ratio)
 
 
 def circle(radius: float, centre: tuple[float, float], count: int) -> tuple[np.ndarray, np.ndarray]:

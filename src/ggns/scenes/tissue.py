@@ -74,12 +74,6 @@ def grasped_patch(scene: dict, rest: np.ndarray, grasped: int) -> np.ndarray:
     return np.flatnonzero(top & near)
 
 
-def tissue_material(scene: dict, index: int) -> Material:
-    entry = scene["materials"][index]
-    return Material(float(entry["youngs_modulus"]), float(entry["poissons_ratio"]), scene["density"],
-                    scene["rayleigh_mass"], scene["rayleigh_stiffness"])
-
-
 def sample_spec(scene: dict, material: int, rng: np.random.Generator) -> TissueSpec:
     """Grasp candidate ~ uniform; plane azimuth ~ U[0, 2 pi); `gripper.waypoints` waypoints with
     horizontal offset ~ U[-reach, reach] and lift ~ U[min_lift, 1] x lift (the first one lifts)."""
@@ -131,7 +125,7 @@ def check_config(config: dict) -> None:
     if not scene["materials"]:
         raise ValueError("scene.materials must list at least one {poissons_ratio, youngs_modulus}")
     for index in range(len(scene["materials"])):
-        tissue_material(scene, index)
+        Material.listed(scene, index)
     SolverConfig(dt=scene["frame_dt"] / int(scene["substeps"]), **config["solver"])
     if int(scene["num_steps"]) < 2:
         raise ValueError(f"scene.num_steps must be >= 2, got {scene['num_steps']}")
@@ -168,7 +162,7 @@ def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajec
     T = len(path)
     targets = np.repeat(rest[None], T, axis=0)
     targets[:, held] += (path - path[0])[:, None, :]
-    material = tissue_material(scene, spec.material)
+    material = Material.listed(scene, spec.material)
     substeps = int(scene["substeps"])
     solver = SolverConfig(dt=scene["frame_dt"] / substeps, **config["solver"])
     collider = path[:, None, :]  # the gripper: one collider node, no contact surface

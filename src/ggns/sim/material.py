@@ -54,6 +54,19 @@ class Material:
         if self.plane not in PLANES:
             raise ValueError(f"plane must be one of {PLANES} (the 2D idealization), got {self.plane!r}")
 
+    @classmethod
+    def of_scene(cls, scene: dict, youngs_modulus: float, poissons_ratio: float) -> Material:
+        """E and nu with a scene config's density, Rayleigh damping and (2D) `plane`."""
+        return cls(float(youngs_modulus), float(poissons_ratio), scene["density"], scene["rayleigh_mass"],
+                   scene["rayleigh_stiffness"], plane=scene.get("plane", "strain"))
+
+    @classmethod
+    def listed(cls, scene: dict, index: int) -> Material:
+        """Entry `index` of a scene config's `materials` list ({youngs_modulus, poissons_ratio}; the
+        tissue and the cavity) with the scene's density and damping."""
+        entry = scene["materials"][index]
+        return cls.of_scene(scene, entry["youngs_modulus"], entry["poissons_ratio"])
+
     @property
     def lame(self) -> tuple[float, float]:
         """3D Lame parameters (lambda, mu) in Pa (also the 2D plane-strain pair)."""

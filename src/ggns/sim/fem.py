@@ -110,6 +110,24 @@ class ElasticBody:
         self.hess_rows = dofs[:, :, None].expand(-1, m, m).reshape(-1)
         self.hess_cols = dofs[:, None, :].expand(-1, m, m).reshape(-1)
 
+    def _svd(self, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """`rotation_variant_svd(F)`, remembered for the last F: a Newton iteration evaluates the energy
+        at the line search's accepted point and then the gradient and tangent at the same point, so
+        the second needs no SVD of its own (the same numbers, bit for bit)."""
+        cached = getattr(self, "_last_svd", None)
+        if cached is not None and cached[0].shape == F.shape and torch.equal(cached[0], F):
+            return cached[1]
+        result = rotation_variant_svd(F)
+        self._last_svd = (F, result)
+        return result
+
+    def _rotation(self, F: torch.Tensor) -> torch.Tensor:
+        """`polar_rotation(F)`, through the remembered SVD in 3D."""
+        if self.dim == 2:
+            return polar_rotation(F)
+        U, _, Vh = self._svd(F)
+        return U @ Vh
+
     def deformation_gradient(self, x: torch.Tensor) -> torch.Tensor:
         """F per element, [C, d, d], from node positions x [N, d]."""
         return torch.einsum("cai,caj->cij", x[self.cells], self.B)
@@ -117,7 +135,7 @@ class ElasticBody:
     def energy(self, x: torch.Tensor, R: torch.Tensor | None = None) -> torch.Tensor:
         """Total elastic energy in J (2D: J per metre of thickness), scalar."""
         F = self.deformation_gradient(x)
-        R = polar_rotation(F) if R is None else R
+        R = self._rotation(F) if R is None else R
         tr = torch.einsum("cij,cij->c", R, F) - self.dim
         psi = self.mu * ((F - R) ** 2).sum(dim=(1, 2)) + 0.5 * self.lam * tr**2
         return (self.volume * psi).sum()
@@ -125,7 +143,7 @@ class ElasticBody:
     def gradient(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Energy gradient dE/dx [N, d] (= minus the elastic forces) and the rotations [C, d, d]."""
         F = self.deformation_gradient(x)
-        R = polar_rotation(F)
+        R = self._rotation(F)
         return self._gradient(x, F, R), R
 
     def _gradient(self, x: torch.Tensor, F: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
@@ -144,7 +162,7 @@ class ElasticBody:
             raise ValueError(f"tangent must be one of {TANGENTS}, got {tangent!r}")
         F = self.deformation_gradient(x)
         if tangent == "warped":
-            R = polar_rotation(F)
+            R = self._rotation(F)
             return self._gradient(x, F, R), self.warped_stiffness(R)
         R, twists, sums = self._twist_modes(F)
         return self._gradient(x, F, R), self._exact_blocks(F, R, twists, sums, project=tangent == "projected")
@@ -165,7 +183,7 @@ class ElasticBody:
             R = polar_rotation(F)
             J = torch.tensor([[0.0, -1.0], [1.0, 0.0]], dtype=F.dtype)
             return R, (J @ R)[:, None] / math.sqrt(2), torch.einsum("cij,cij->c", R, F)[:, None]
-        U, sigma, Vh = rotation_variant_svd(F)
+        U, sigma, Vh = self._svd(F)
         pairs = ((0, 1), (0, 2), (1, 2))
         twists = torch.stack([U[:, :, k, None] * Vh[:, None, l, :] - U[:, :, l, None] * Vh[:, None, k, :]
                               for k, l in pairs], dim=1) / math.sqrt(2)

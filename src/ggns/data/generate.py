@@ -9,7 +9,8 @@ material combinations (trajectory i uses combination i mod their number).
 Other cameras, same trajectories: a preset with `states_from: <data preset>` (same scene, solver
 and seed, another sensor) does not simulate. It reads the states of that preset's split files
 (generating a missing one first) and observes them with its own cameras (the scene's
-`observe_trajectory`), about 8x faster on the cavity than simulating again. Without sensor noise
+`observe_trajectory`): the cavity_cpu camera presets took 38 s and 60 s for 204 trajectories,
+whose simulation took 23 minutes (docs/benchmarks.md). Without sensor noise
 the result is bit for bit what a full generation with this preset makes, so a file's stored
 generator config and seeds still regenerate each trajectory alone (`regenerate`).
 """
@@ -101,8 +102,7 @@ def generate(config: dict, splits: list[str] | None = None, *, overwrite: bool =
     bad = {s: sizes[s] for s in chosen if int(sizes[s]) < 1}
     if bad:
         raise ValueError(f"split sizes must be >= 1, got {bad}")
-    if config.get("states_from"):
-        check_states_from(config)
+    source = check_states_from(config) if config.get("states_from") else None
     paths = [split_path(config["output"], s) for s in chosen]
     existing = [str(p) for p in paths if p.exists()]
     if existing and not overwrite:
@@ -117,8 +117,8 @@ def generate(config: dict, splits: list[str] | None = None, *, overwrite: bool =
     try:
         for split, path in zip(chosen, paths):
             jobs = trajectory_jobs(config, split, int(sizes[split]))
-            if config.get("states_from"):
-                stored = stored_states(config, split, len(jobs), progress=progress)
+            if source is not None:
+                stored = stored_states(config, source, split, len(jobs), progress=progress)
                 results = pool.imap(_observe, stored) if pool else map(_observe, stored)
             else:
                 results = pool.imap(_make, jobs) if pool else map(_make, jobs)
@@ -161,10 +161,10 @@ def check_states_from(config: dict) -> dict:
     return source
 
 
-def stored_states(config: dict, split: str, count: int, progress: bool = True):
-    """The first `count` trajectories of `split` of the preset named by config['states_from'] (its split
-    file generated first when missing), checked one by one against this preset's seeds."""
-    source = check_states_from(config)
+def stored_states(config: dict, source: dict, split: str, count: int, progress: bool = True):
+    """The first `count` trajectories of `split` of `source`, the generator config of the preset named by
+    config['states_from'] (`check_states_from`; its split file generated first when missing), checked
+    one by one against this preset's seeds."""
     path = split_path(source["output"], split)
     if not path.exists():
         generate(source, [split], progress=progress)

@@ -109,12 +109,13 @@ class ElasticBody:
         m = dofs.shape[1]
         self.hess_rows = dofs[:, :, None].expand(-1, m, m).reshape(-1)
         self.hess_cols = dofs[:, None, :].expand(-1, m, m).reshape(-1)
+        self._last_svd = None  # (F, its rotation-variant SVD) of the last 3D evaluation (`_svd`)
 
     def _svd(self, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """`rotation_variant_svd(F)`, remembered for the last F: a Newton iteration evaluates the energy
         at the line search's accepted point and then the gradient and tangent at the same point, so
         the second needs no SVD of its own (the same numbers, bit for bit)."""
-        cached = getattr(self, "_last_svd", None)
+        cached = self._last_svd
         if cached is not None and cached[0].shape == F.shape and torch.equal(cached[0], F):
             return cached[1]
         result = rotation_variant_svd(F)

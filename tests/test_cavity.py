@@ -103,6 +103,21 @@ def test_extreme_poissons_ratios_stay_finite_and_uninverted(nu):
     assert traj.diagnostics["contact_work"].sum() > 0  # it was squeezed
 
 
+def test_banded_and_sparse_solvers_give_the_same_squeeze():
+    """The preset's banded Cholesky against SuperLU's LDL^T on a squeeze (seed 5: contact from step 4):
+    the same Newton iterations per step, positions equal to round-off."""
+    from ggns.bench.timing import NoSensor
+
+    out = {}
+    for solver in ("banded", "sparse"):
+        config = load_config("cavity_tiny", ["scene.num_steps=9", f"solver.linear_solver={solver}"])
+        out[solver] = cavity.make_trajectory(config, 1, 5, NoSensor(3))
+    assert out["banded"].diagnostics["contact_work"].sum() > 0
+    np.testing.assert_array_equal(out["banded"].diagnostics["newton_iterations"],
+                                  out["sparse"].diagnostics["newton_iterations"])
+    np.testing.assert_allclose(out["banded"].positions, out["sparse"].positions, rtol=0, atol=1e-10)
+
+
 def test_fewer_cameras_never_see_what_more_cameras_would_not(tiny):
     """The same deformed state seen by the first, the first two and all five cameras, each with a
     voxel far below the ray spacing (so the cloud is the raw hits): every hit of a camera subset is a

@@ -1,14 +1,17 @@
-"""The Newton core's two linear-algebra back ends (dense Cholesky, sparse LDL^T) give the same
-matrices, solutions and trajectories; `auto` keeps the plate on the dense path; a bad choice is refused."""
+"""The Newton core's linear-algebra back ends (dense Cholesky, sparse LDL^T, banded Cholesky) give
+the same matrices, solutions and trajectories; `auto` keeps the plate on the dense path; a bad choice
+is refused; the banded one runs LAPACK on one BLAS thread."""
 import numpy as np
 import pytest
+import threadpoolctl
 import torch
 
 from ggns.config import load_config
 from ggns.geometry import boundary_facets, box_tet_mesh
 from ggns.scenes.plate import collider_path, plate_material, plate_mesh, sample_spec
 from ggns.sim.fem import ElasticBody
-from ggns.sim.linalg import SPARSE_MIN_FREE_DOFS, DenseLinearAlgebra, SparseLinearAlgebra
+from ggns.sim.linalg import (SPARSE_MIN_FREE_DOFS, BandedLinearAlgebra, DenseLinearAlgebra, SparseLinearAlgebra,
+                             one_blas_thread)
 from ggns.sim.contact import signed_distance
 from ggns.sim.material import Material
 from ggns.sim.run import simulate
@@ -43,10 +46,23 @@ def test_sparse_matrices_equal_the_dense_ones():
     torch.testing.assert_close(sparse.matvec(Hs, v), dense.matvec(Hd, v), rtol=1e-12, atol=1e-12)
     g = torch.randn(int(free.sum()), generator=rng, dtype=torch.float64)
     torch.testing.assert_close(sparse.solve(Hs, g), dense.solve(Hd, g), rtol=1e-10, atol=1e-14)
-    # an indefinite matrix is refused by both (the Newton loop then raises SimulationError)
+    # the banded back end: the sparse format, its own ordering and factorization
+    banded = BandedLinearAlgebra(body, free)
+    Hb = banded.add_node_blocks(0.3 * banded.stiffness(R) + banded.diag(diag), blocks)
+    torch.testing.assert_close(Hb, Hs, rtol=0, atol=0)
+    assert 0 < banded.bandwidth < banded.num_free - 1
+    assert sorted(banded.order.tolist()) == list(range(banded.num_free))
+    torch.testing.assert_close(banded.solve(Hb, g), dense.solve(Hd, g), rtol=1e-10, atol=1e-14)
+    # an indefinite matrix is refused by all three (the Newton loop then raises SimulationError)
     shift = 2 * torch.linalg.eigvalsh(Hd[free][:, free])[0]
     assert dense.solve(Hd - dense.diag(shift.expand(len(diag))), g) is None
     assert sparse.solve(Hs - sparse.diag(shift.expand(len(diag))), g) is None
+    assert banded.solve(Hb - banded.diag(shift.expand(len(diag))), g) is None
+
+
+def test_banded_solves_run_on_one_blas_thread():
+    with one_blas_thread():
+        assert all(lib["num_threads"] == 1 for lib in threadpoolctl.threadpool_info() if lib["user_api"] == "blas")
 
 
 def test_sparse_and_dense_trajectories_agree_on_a_tet_block():
@@ -57,7 +73,7 @@ def test_sparse_and_dense_trajectories_agree_on_a_tet_block():
     faces = torch.tensor(boundary_facets(cube_cells, cube))
     cube = torch.tensor(cube) + torch.tensor([0.05, 0.15, 0.62])  # just above the top, off the pulled node
     states, iterations = {}, {}
-    for solver in ("dense", "sparse"):
+    for solver in ("dense", "sparse", "banded"):
         sim = Simulator(body, fixed, SolverConfig(dt=0.01, gravity=(0.0, 0.0, -9.81), linear_solver=solver))
         assert sim.linalg.name == solver
         x, v = body.X.clone(), torch.zeros_like(body.X)
@@ -70,9 +86,10 @@ def test_sparse_and_dense_trajectories_agree_on_a_tet_block():
             states[solver].append(x)
             iterations[solver].append((info.newton_iterations, info.contact_iterations))
         assert info.contact_work > 0  # the collider did push
-    assert iterations["dense"] == iterations["sparse"]
-    for xd, xs in zip(states["dense"], states["sparse"]):
+    assert iterations["dense"] == iterations["sparse"] == iterations["banded"]
+    for xd, xs, xb in zip(states["dense"], states["sparse"], states["banded"]):
         assert (xd - xs).abs().max() < 1e-9
+        assert (xd - xb).abs().max() < 1e-9
 
 
 def test_sparse_and_dense_plate_trajectories_agree_and_auto_keeps_the_plate_dense():
@@ -101,7 +118,7 @@ def test_auto_picks_by_the_number_of_free_dofs():
 
 
 def test_unknown_linear_solver_is_refused():
-    with pytest.raises(ValueError, match=r"linear_solver must be one of \('auto', 'dense', 'sparse'\).*'cholmod'"):
+    with pytest.raises(ValueError, match=r"linear_solver must be one of \('auto', 'dense', 'sparse', 'banded'\).*'cholmod'"):
         SolverConfig(dt=0.01, linear_solver="cholmod")
 
 

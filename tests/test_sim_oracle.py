@@ -49,7 +49,7 @@ def meshes():
 MESHES = meshes()
 
 
-@pytest.mark.parametrize("linear_solver", ["dense", "sparse"])
+@pytest.mark.parametrize("linear_solver", ["dense", "sparse", "banded"])
 @pytest.mark.parametrize("dim, plane", [(2, "strain"), (2, "stress"), (3, "strain")])
 @pytest.mark.parametrize("nu", [-0.9, 0.0, 0.49])
 def test_static_equilibrium_matches_scikit_fem(dim, plane, nu, linear_solver):

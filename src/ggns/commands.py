@@ -108,23 +108,23 @@ def geometry(dataset: str = "plate_small", split: Split = "train", trajectories:
     return ok
 
 
-def bench_sim(config: str = "plate", trajectories: int = 9, generate: bool = False) -> dict:
+def bench_sim(*overrides: str, config: str = "plate", trajectories: int = 9, generate: bool = False) -> dict:
     """Time the ground-truth simulator and the depth sensor (and dataset generation).
 
     Args:
+        overrides: preset overrides as key=value, e.g. solver.linear_solver=sparse (a key the preset lacks is an error)
         config: data preset
         trajectories: trajectories timed one by one
         generate: also time generating all splits of the config with its workers
     """
     from .bench import sim as sim_bench
 
-
-    return sim_bench.bench_sim(config, trajectories=trajectories, generate_splits=generate)
+    return sim_bench.bench_sim(config, trajectories=trajectories, generate_splits=generate, overrides=list(overrides))
 
 
 def bench_solvers(nodes: Sequence[int] = (10, 6, 6), frames: int = 12,
-                  solvers: Sequence[Literal["dense", "sparse"]] = ("dense", "sparse")) -> dict:
-    """The simulator's linear solvers (dense, sparse) timed on a tetrahedral block with a pulled node.
+                  solvers: Sequence[Literal["dense", "sparse", "banded"]] = ("dense", "sparse")) -> dict:
+    """The simulator's linear solvers (dense, sparse, banded) timed on a tetrahedral block with a pulled node.
 
     Args:
         nodes: nodes per axis of the block (1 x 0.6 x 0.6 m)

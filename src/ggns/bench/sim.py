@@ -24,12 +24,13 @@ from ..sim.solver import SimulationError, Simulator, SolverConfig
 from .timing import median_ms, time_trajectories
 
 
-def bench_sim(preset: str = "plate", trajectories: int = 9, generate_splits: bool = False) -> dict:
+def bench_sim(preset: str = "plate", trajectories: int = 9, generate_splits: bool = False, overrides=()) -> dict:
     """Time the ground-truth simulator and the depth sensor trajectory by trajectory on one thread
     (as a generation worker runs), over `trajectories` of the preset's training jobs spread over its
     shape x material combinations; with `generate_splits`, also the generation of all the preset's
-    splits with its worker count. Prints and returns the medians."""
-    config = load_config(preset)
+    splits with its worker count; `overrides` (key=value) change the preset, e.g.
+    solver.linear_solver=sparse. Prints and returns the medians."""
+    config = load_config(preset, list(overrides))
     scene_module = SCENES[config["scene"]["name"]]
     sensor = DepthSensor(SensorConfig.from_dict(config["sensor"]))
     combos = scene_module.num_combinations(config["scene"])
@@ -60,7 +61,8 @@ def bench_sim(preset: str = "plate", trajectories: int = 9, generate_splits: boo
             generate(dict(config, output=out), progress=True)
             elapsed = time.perf_counter() - start
         result[f"generate all splits ({total} trajectories, {config['workers']} workers) s"] = elapsed
-    print(f"bench sim: preset {preset!r}, {config['scene']['num_steps']} steps per trajectory")
+    print(f"bench sim: preset {preset!r}{' with ' + ' '.join(overrides) if overrides else ''}, "
+          f"{config['scene']['num_steps']} steps per trajectory, linear solver {config['solver'].get('linear_solver', 'auto')}")
     for key, value in result.items():
         print(f"  {key:58s} {value:.3f}" if isinstance(value, float) else f"  {key:58s} {value}")
     return result

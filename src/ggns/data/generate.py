@@ -1,5 +1,7 @@
-"""Generate dataset splits: trajectories are simulated and observed in worker processes and
-written in order, through `SplitWriter`, to one HDF5 file per split.
+"""Generate dataset splits: trajectories are simulated and observed in worker processes, each kept
+as its own file as soon as it is finished, and written in order, through `SplitWriter`, to one HDF5
+file per split when all are made; a killed generator's rerun continues from the kept ones
+(`resume`).
 
 Determinism: trajectory i of a split gets the seed SeedSequence([seed, split code, i]), so its
 arrays depend neither on the number of workers nor on the other trajectories, and the seed
@@ -25,7 +27,8 @@ from tqdm import tqdm
 
 from ..scenes import SCENES
 from ..sensors.camera import DepthSensor, SensorConfig
-from .schema import SplitReader, SplitWriter, config_differences
+from .resume import SplitParts, remove_stale_partials
+from .schema import SplitReader, config_differences
 
 SPLIT_CODES = {"train": 0, "val": 1, "test": 2}
 
@@ -114,19 +117,26 @@ def generate(config: dict, splits: list[str] | None = None, *, overwrite: bool =
         pool = mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(config,))
     else:
         _init_worker(config)  # in this process: its thread setting is restored below
+    log = print if progress else (lambda *_: None)
     try:
         for split, path in zip(chosen, paths):
             jobs = trajectory_jobs(config, split, int(sizes[split]))
+            remove_stale_partials(path.parent, log)
+            parts = SplitParts(path, config, scene=name, split=split, dim=dim, log=log)
+            done = parts.done(jobs)
+            todo = [i for i in range(len(jobs)) if i not in done]
             if source is not None:
-                stored = stored_states(config, source, split, len(jobs), progress=progress)
+                stored = stored_states(config, source, split, len(jobs), progress=progress, indices=todo)
                 results = pool.imap(_observe, stored) if pool else map(_observe, stored)
             else:
-                results = pool.imap(_make, jobs) if pool else map(_make, jobs)
-            with SplitWriter(path, scene=name, split=split, dim=dim, generator_config=config, overwrite=overwrite) as writer:
-                with tqdm(total=len(jobs), desc=f"{name}/{split}", unit="traj", disable=not progress) as bar:
-                    for trajectory in results:
-                        writer.append(trajectory)
-                        bar.update()
+                todo_jobs = [jobs[i] for i in todo]
+                results = pool.imap(_make, todo_jobs) if pool else map(_make, todo_jobs)
+            with tqdm(total=len(jobs), initial=len(done), desc=f"{name}/{split}", unit="traj",
+                      disable=not progress) as bar:
+                for index, trajectory in zip(todo, results):
+                    parts.write(index, trajectory)
+                    bar.update()
+            parts.merge(len(jobs), overwrite=overwrite)
     finally:
         if pool is not None:
             pool.terminate()
@@ -161,10 +171,10 @@ def check_states_from(config: dict) -> dict:
     return source
 
 
-def stored_states(config: dict, source: dict, split: str, count: int, progress: bool = True):
+def stored_states(config: dict, source: dict, split: str, count: int, progress: bool = True, indices=None):
     """The first `count` trajectories of `split` of `source`, the generator config of the preset named by
     config['states_from'] (`check_states_from`; its split file generated first when missing), checked
-    one by one against this preset's seeds."""
+    one by one against this preset's seeds; only those at `indices` (in order) when given."""
     path = split_path(source["output"], split)
     if not path.exists():
         generate(source, [split], progress=progress)
@@ -182,7 +192,8 @@ def stored_states(config: dict, source: dict, split: str, count: int, progress: 
 
     def states():
         with reader:
-            for i, (_, seed) in enumerate(jobs):
+            for i in range(count) if indices is None else indices:
+                seed = jobs[i][1]
                 trajectory = reader[i]
                 if trajectory.seed != seed:
                     raise ValueError(f"{path}: states_from: trajectory {i} has seed {trajectory.seed}, this preset's "

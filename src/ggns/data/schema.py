@@ -361,6 +361,16 @@ class SplitReader:
     def __len__(self) -> int:
         return self._len
 
+    def seed(self, i: int) -> int:
+        """The stored seed of trajectory i, without reading its arrays."""
+        i = operator.index(i)
+        if not 0 <= i < self._len:
+            raise IndexError(f"trajectory index {i} out of range for {self._len} trajectories")
+        try:
+            return int(self._h5()["trajectories"][f"{i:06d}"].attrs["seed"])
+        except (OSError, KeyError, RuntimeError):
+            raise self._error(f"trajectory {i} is not readable (truncated or corrupt)") from None
+
     def __getitem__(self, i: int) -> Trajectory:
         i = operator.index(i)
         if not -self._len <= i < self._len:

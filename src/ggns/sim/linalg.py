@@ -1,4 +1,5 @@
-"""The two linear-algebra back ends of the Newton core: dense (torch Cholesky) and sparse (SuperLU).
+"""The linear-algebra back ends of the Newton core: dense (torch Cholesky), sparse (SuperLU) and
+banded (LAPACK banded Cholesky after a reverse Cuthill-McKee ordering).
 
 A back end owns the matrix format of every Hessian-like matrix the solver builds (the element
 tangent, warped or exact, both with the element-block pattern; diagonal mass and damping terms,
@@ -9,19 +10,33 @@ a matrix to the free degrees of freedom (the Dirichlet dofs are removed, as in t
 factors it and solves; it returns None when the matrix is not positive definite, and the caller
 reports where that happened.
 
+`banded` keeps the sparse back end's matrix format and replaces only the factorization: the free
+block's pattern is ordered once per `Simulator` by reverse Cuthill-McKee, and every Newton matrix is
+factored by `scipy.linalg.cholesky_banded` over that bandwidth (cost ~ n b^2, no fill analysis, no
+ordering per solve). It pays off for meshes whose ordered bandwidth b is small next to the unknowns
+n, as the cavity's tube (one element thick, 25 nodes per ring: b = 224 of 2,100); on a compact
+block, whose bandwidth grows with n^(2/3), sparse wins. Its results equal the sparse back end's to
+round-off (not bit for bit). LAPACK runs on one BLAS thread (threadpoolctl): the simulator is
+single-threaded by design (generation runs one trajectory per worker process), and OpenBLAS's own
+threads beside busy cores made a cavity trajectory 2-3x slower than one thread (measured).
+
 `auto` chooses sparse from `SPARSE_MIN_FREE_DOFS` free unknowns on (docs/simulator.md, "Linear
-solver": the 3D crossover measured on one thread with `python -m ggns bench solvers`).
+solver": the 3D crossover measured on one thread with `python -m ggns bench solvers`); it never
+chooses banded.
 """
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse
+import scipy.sparse.csgraph
 import scipy.sparse.linalg
+import threadpoolctl
 import torch
 
 from .fem import ElasticBody
 
-LINEAR_SOLVERS = ("auto", "dense", "sparse")
+LINEAR_SOLVERS = ("auto", "dense", "sparse", "banded")
 SPARSE_MIN_FREE_DOFS = 200  # "auto" picks sparse from this many free unknowns on
 
 
@@ -135,6 +150,58 @@ class SparseLinearAlgebra:
         return torch.from_numpy(lu.solve(g.numpy()))
 
 
+_blas = None  # the loaded BLAS libraries (threadpoolctl), found on the first banded solve
+
+
+def one_blas_thread():
+    """A context in which BLAS/LAPACK calls run on one thread."""
+    global _blas
+    if _blas is None:
+        _blas = threadpoolctl.ThreadpoolController().select(user_api="blas")
+    return _blas.limit(limits=1)
+
+
+class BandedLinearAlgebra(SparseLinearAlgebra):
+    """The sparse back end's matrices; the free block ordered once by reverse Cuthill-McKee and
+    factored by LAPACK's banded Cholesky (module docstring)."""
+
+    name = "banded"
+
+    def __init__(self, body: ElasticBody, free: torch.Tensor):
+        super().__init__(body, free)
+        n = self.num_free
+        pattern = scipy.sparse.csr_matrix((np.ones(len(self.indices)), self.indices, self.indptr), shape=(n, n))
+        order = scipy.sparse.csgraph.reverse_cuthill_mckee(pattern, symmetric_mode=True)
+        position = np.empty(n, dtype=np.int64)
+        position[order] = np.arange(n)
+        self.order = torch.from_numpy(order.astype(np.int64))
+        rows = position[np.repeat(np.arange(n), np.diff(self.indptr))]  # ordered row, column of each kept entry
+        cols = position[self.indices]
+        self.bandwidth = int(np.abs(rows - cols).max()) if len(rows) else 0
+        upper = rows <= cols  # LAPACK's upper band storage: ab[b + i - j, j] = A[i, j] for i <= j
+        # the pattern values (over all of H) that fill the band, and where
+        self.band_values = torch.nonzero(self.keep).flatten()[torch.from_numpy(upper)]
+        self.band_index = torch.from_numpy((self.bandwidth + rows[upper] - cols[upper]) * n + cols[upper])
+
+    def solve(self, H: torch.Tensor, g: torch.Tensor) -> torch.Tensor | None:
+        n = self.num_free
+        band = torch.zeros((self.bandwidth + 1) * n, dtype=torch.float64)
+        band[self.band_index] = H[self.band_values]
+        with one_blas_thread():
+            try:
+                factor = scipy.linalg.cholesky_banded(band.view(self.bandwidth + 1, n).numpy(), lower=False,
+                                                      check_finite=False)
+            except np.linalg.LinAlgError:  # a non-positive pivot: not positive definite
+                return None
+            y = scipy.linalg.cho_solve_banded((factor, False), g[self.order].numpy(), check_finite=False)
+        x = torch.empty_like(g)
+        x[self.order] = torch.from_numpy(y)
+        return x
+
+
+BACK_ENDS = {"dense": DenseLinearAlgebra, "sparse": SparseLinearAlgebra, "banded": BandedLinearAlgebra}
+
+
 def linear_algebra(choice: str, body: ElasticBody, free: torch.Tensor):
     """The back end named by `choice` (one of LINEAR_SOLVERS); "auto": sparse from
     SPARSE_MIN_FREE_DOFS free unknowns on, dense below."""
@@ -142,4 +209,4 @@ def linear_algebra(choice: str, body: ElasticBody, free: torch.Tensor):
         raise ValueError(f"linear_solver must be one of {LINEAR_SOLVERS}, got {choice!r}")
     if choice == "auto":
         choice = "sparse" if int(free.sum()) >= SPARSE_MIN_FREE_DOFS else "dense"
-    return DenseLinearAlgebra(body, free) if choice == "dense" else SparseLinearAlgebra(body, free)
+    return BACK_ENDS[choice](body, free)

@@ -16,7 +16,7 @@ Multiplier updates repeat until no node is inside a collider by more than the to
 Contact is node-to-surface and frictionless.
 
 The linear algebra (matrix format, factorization) is a back end from `linalg` chosen by
-`SolverConfig.linear_solver`: dense Cholesky or sparse LDL^T; the Newton loop, line search,
+`SolverConfig.linear_solver`: dense Cholesky, sparse LDL^T or banded Cholesky; the Newton loop, line search,
 contact and error reporting are the same for both.
 """
 from __future__ import annotations
@@ -45,8 +45,9 @@ class SolverConfig:
     contact_tolerance: float = 1e-4  # max penetration at the end of a step, m
     contact_stiffness: float = 100.0  # penalty per node, relative to its own mass+stiffness diagonal
     max_contact_iterations: int = 40
-    # "dense" (torch Cholesky), "sparse" (scipy SuperLU) or "auto": sparse from
-    # SPARSE_MIN_FREE_DOFS free unknowns on (docs/simulator.md, "Linear solver")
+    # "dense" (torch Cholesky), "sparse" (scipy SuperLU), "banded" (LAPACK banded Cholesky after a
+    # reverse Cuthill-McKee ordering: thin meshes such as the cavity's tube) or "auto": sparse from
+    # SPARSE_MIN_FREE_DOFS free unknowns on, dense below (docs/simulator.md, "Linear solver")
     linear_solver: str = "auto"
     # Newton's elastic tangent (fem.py, docs/simulator.md "Tangent"): "warped" (R K0 R^T, the
     # rotation's derivative omitted), "exact" (the exact Hessian; an iteration whose Newton matrix

@@ -179,7 +179,7 @@ def bench_tradeoff(dataset: str = "plate_small", checkpoint: dict[str, str] | No
         rollout_trajectories: trajectories in the batched rollout
         repeats: timed rollouts per measurement (the median is reported)
         output_dir: where tradeoff.csv and tradeoff.png go
-        resolution: mesh resolution levels for the simulator and the models (plate: nodes per side, tissue: nodes along x; default: the preset's)
+        resolution: mesh resolution levels for the simulator and the models (plate: nodes per side, tissue: nodes along x, cavity: nodes per ring; default: the preset's)
         newton_tolerance: also the simulator at these Newton tolerances (m, coarser than the preset's), at the preset's substeps
         data_dir: the dataset's directory (default: the preset's output)
         threads: torch threads of the model rollouts on the CPU (default: torch's; the simulator always runs on 1)

@@ -26,7 +26,7 @@ error against the same substeps at the preset's tolerance (the tolerance's own e
 Mesh resolution: a scene module that supports it defines `resolution(scene) -> int`, the
 preset's own level, and `with_resolution(scene, level) -> dict`, a copy of the scene config at
 another level (plate: `grid_nodes`, nodes per side; tissue: nodes along x, the other axes scaled
-alike, see `scenes.tissue.with_resolution`); a scene without them runs at its preset's mesh only
+alike, see `scenes.tissue.with_resolution`; cavity: nodes per ring, `scenes.cavity.with_resolution`); a scene without them runs at its preset's mesh only
 (asking for a level is an error naming the scene). `resolution` sets the level for the simulator
 (reference and coarse runs alike; `grid_nodes` is its older, plate-only name) and the node count
 and level are recorded. `tradeoff` takes several levels: at the preset's own the learned models

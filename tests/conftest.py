@@ -192,3 +192,14 @@ def fit_and_test_3d(task: str, model: str, data_dir, tmp_path, latent: int, bloc
     metrics = (tmp_path / f"{task}_{model}" / "test" / "test_metrics.md").read_text()
     assert "rollout_mse_never" in metrics and "m10_mse" in metrics and "rollout_iou_never" in metrics  # 3D volume IoU
     return checkpoint, metrics
+
+
+def save_untrained(model, path):
+    """`model` saved as a Lightning checkpoint without training."""
+    import pytorch_lightning as pl
+
+    trainer = pl.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False)
+    trainer.strategy.connect(model)
+    trainer.save_checkpoint(path)
+    return path

@@ -22,7 +22,7 @@ from ggns.data.schema import DatasetError, SplitReader, SplitWriter
 from ggns.evaluation.evaluate import split_trajectories
 from ggns.geometry import signed_volumes
 from ggns.models.simulators import GGNS, MGNM, load_simulator
-from conftest import box_mesh
+from conftest import box_mesh, save_untrained
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -189,14 +189,6 @@ def run(args: list[str]) -> None:
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(sys, "argv", ["ggns"])
         main(args)
-
-
-def save_untrained(model, path):
-    trainer = pl.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                         enable_model_summary=False)
-    trainer.strategy.connect(model)
-    trainer.save_checkpoint(path)
-    return path
 
 
 @pytest.fixture(scope="module")

@@ -14,9 +14,14 @@
               `bench tradeoff`: time per rollout step against rollout error, CSV + Pareto plot;
               `bench learning`: learning curves of model variants per CPU-second, table + plots)
     demo      the README's main job on a small embedded default
+
+A bad input (missing file or preset, out-of-range value, unreadable dataset or checkpoint) or a
+reported numerical failure ends with one line on stderr, `error: ...`, and exit status 2;
+`python -m ggns --traceback <command> ...` (or GGNS_TRACEBACK=1) shows the traceback instead.
 """
 from __future__ import annotations
 
+import os
 import sys
 
 from .command_line import build_parser, call
@@ -25,20 +30,48 @@ from .commands import COMMANDS
 LIGHTNING_COMMANDS = ("fit", "validate", "test", "predict")  # LightningCLI (ggns.cli); the rest: ggns.commands
 
 
+# Errors that name a problem with the user's input or a reported numerical failure: one line on
+# stderr and exit status 2, no traceback (GGNS_TRACEBACK=1 or a leading --traceback shows it).
+# ValueError covers DatasetError, CheckpointError, CheckpointMismatchError, UnknownKeyError and the
+# configs' range checks; SimulationError and RolloutError are the simulator's and the rollout's
+# numerical reports (they name the step and where).
+def _user_errors() -> tuple[type[BaseException], ...]:
+    from .evaluation.rollout import RolloutError
+    from .sim.solver import SimulationError
+
+    errors = (FileNotFoundError, FileExistsError, IsADirectoryError, PermissionError, ValueError, SimulationError,
+              RolloutError)
+    if "pytorch_lightning" in sys.modules:  # Lightning's own refusal of a configuration
+        from pytorch_lightning.utilities.exceptions import MisconfigurationException
+
+        errors += (MisconfigurationException,)
+    return errors
+
+
 def main(argv: list[str] | None = None) -> None:
     given = sys.argv[1:] if argv is None else list(argv)
+    traceback = os.environ.get("GGNS_TRACEBACK", "") not in ("", "0")
+    if given[:1] == ["--traceback"]:
+        traceback, given = True, given[1:]
+        argv = given
+    try:
+        _run(given, argv)
+    except _user_errors() as error:
+        if traceback:
+            raise
+        print(f"error: {error}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def _run(given: list[str], argv: list[str] | None) -> None:
     if given and given[0] in LIGHTNING_COMMANDS:
         # imported here: Lightning takes seconds to import, and the other commands do not need it
         from pytorch_lightning.utilities.exceptions import SIGTERMException
 
-        from .checkpoints import CheckpointError
-        from .cli import CheckpointMismatchError, build_cli
+        from .cli import build_cli
 
         try:
             build_cli(argv)  # None: LightningCLI reads sys.argv itself
-        except (CheckpointMismatchError, CheckpointError) as error:
-            print(f"error: {error}", file=sys.stderr)
-            raise SystemExit(2) from None
         except SIGTERMException:
             # Lightning stops a SIGTERM'd run with a bare SystemExit, i.e. exit status 0; a sweep or a
             # learning file would then test a partial fit or mark it finished.
@@ -47,12 +80,7 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit(143) from None
         return
     parser = build_parser(COMMANDS, prog="ggns", description=__doc__)
-    args = parser.parse_args(argv)
-    try:
-        call(args)
-    except (FileNotFoundError, FileExistsError, ValueError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        raise SystemExit(2) from None
+    call(parser.parse_args(argv))
 
 
 if __name__ == "__main__":

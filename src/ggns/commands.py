@@ -239,15 +239,18 @@ def export(checkpoint: str, dataset: str = "plate_small", data_dir: str | None =
     from .batch import TrajectoryBatch
     from .data.module import SimulationDataModule
     from .evaluation.pictures import rollout_series
+    from .evaluation.predict import check_model_fits
     from .evaluation.schedules import parse_schedule
     from .pretrained import load_model
     from .paraview import write_rollout
 
     model = load_model(checkpoint, map_location="cpu")
-    trajectories = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False).trajectories(split)
+    data = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False)
+    trajectories = data.trajectories(split)
     if not 0 <= trajectory < len(trajectories):
         raise ValueError(f"--trajectory {trajectory} is not among the {len(trajectories)} {split} trajectories")
     chosen = trajectories[trajectory]
+    check_model_fits(model, chosen.dim, data.config["scene"]["name"])
     preds, points = rollout_series(TrajectoryBatch.from_trajectories([chosen]), {type(model).__name__: model},
                                    parse_schedule(schedule))
     names = {re.sub(r"[^\w.+-]+", "_", label).strip("_"): x for label, x in preds.items()}
@@ -280,14 +283,17 @@ def diagnose(checkpoint: str, dataset: str = "tissue_cpu", data_dir: str | None 
     from .data.module import SimulationDataModule
     from .evaluation.evaluate import split_trajectories
     from .evaluation.observability import PARTS, SEEN_AT_LEAST, VISIBILITY, error_shares
+    from .evaluation.predict import check_model_fits
     from .evaluation.schedules import effective_schedule, parse_schedule
     from .pretrained import load_model
     from .reports import markdown_table, write_text
 
     model = load_model(checkpoint, map_location="cpu")
-    chosen = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False).trajectories(split)[:trajectories]
+    data = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False)
+    chosen = data.trajectories(split)[:trajectories]
     if not chosen or chosen[0].dim != 3:
         raise ValueError(f"diagnose needs 3D trajectories; {dataset}/{split} has {'none' if not chosen else chosen[0].dim}")
+    check_model_fits(model, chosen[0].dim, data.config["scene"]["name"])
     batch = TrajectoryBatch.from_trajectories(chosen)
     rows, done, parts = [], set(), []
     for text in schedule:

@@ -71,6 +71,7 @@ from ..data.module import SimulationDataModule
 from ..data.schema import DatasetError, read_trajectories
 from ..evaluation.evaluate import split_trajectories
 from ..evaluation.metrics import rollout_mse
+from ..evaluation.predict import check_model_fits
 from ..evaluation.schedules import effective_schedules
 from ..pretrained import load_model
 from ..reports import write_csv
@@ -249,6 +250,7 @@ def _model_points(checkpoints, dataset, schedules, trajectories, batch, repeats,
     rows = []
     for name, path in checkpoints.items():
         model = load_model(path, map_location="cpu")
+        check_model_fits(model, tests[0].dim)
         if neighbour_scale > 1:
             cap = math.ceil(model.connectivity.max_num_neighbors * neighbour_scale)
             model.connectivity = dataclasses.replace(model.connectivity, max_num_neighbors=cap)

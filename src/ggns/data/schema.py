@@ -107,6 +107,11 @@ def validate_trajectory(traj: Trajectory, dim: int) -> None:
         value = getattr(traj, name)
         if not isinstance(value, (int, float, np.integer, np.floating)) or not np.isfinite(value):
             raise ValueError(f"attribute {name}: expected a finite number, got {value!r}")
+    if not traj.youngs_modulus > 0:
+        raise ValueError(f"attribute youngs_modulus: must be > 0 Pa, got {traj.youngs_modulus!r}")
+    if not -1.0 < traj.poissons_ratio < 0.5:
+        raise ValueError(f"attribute poissons_ratio: must lie in (-1, 0.5) for a stable isotropic material, "
+                         f"got {traj.poissons_ratio!r}")
     if not isinstance(traj.seed, (int, np.integer)) or isinstance(traj.seed, bool):
         raise ValueError(f"attribute seed: expected an integer, got {traj.seed!r}")
     for key, value in traj.params.items():

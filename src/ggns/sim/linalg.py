@@ -13,16 +13,18 @@ reports where that happened.
 `banded` keeps the sparse back end's matrix format and replaces only the factorization: the free
 block's pattern is ordered once per `Simulator` by reverse Cuthill-McKee, and every Newton matrix is
 factored by `scipy.linalg.cholesky_banded` over that bandwidth (cost ~ n b^2, no fill analysis, no
-ordering per solve). It pays off for meshes whose ordered bandwidth b is small next to the unknowns
-n, as the cavity's tube (one element thick, 25 nodes per ring: b = 224 of 2,100); on a compact
-block, whose bandwidth grows with n^(2/3), sparse wins. Its results equal the sparse back end's to
-round-off (not bit for bit). LAPACK runs on one BLAS thread (threadpoolctl): the simulator is
+ordering per solve). It pays off where the ordered bandwidth b is small next to the unknowns n:
+the cavity's tube (one element thick, 25 nodes per ring: b = 224 of 2,100), and also the 10 x 6 x 6
+tet block of `bench solvers` (717 unknowns: 0.96 ms per factor + solve against SuperLU's 2.80,
+docs/simulator.md); a compact mesh's bandwidth grows as n^(2/3), so on large compact meshes sparse
+should win again (not measured). Its results equal the sparse back end's to round-off (not bit for
+bit), which is why `auto` does not pick it: the plate's and the tissue's data stay bit for bit. LAPACK runs on one BLAS thread (threadpoolctl): the simulator is
 single-threaded by design (generation runs one trajectory per worker process), and OpenBLAS's own
 threads beside busy cores made a cavity trajectory 2-3x slower than one thread (measured).
 
 `auto` chooses sparse from `SPARSE_MIN_FREE_DOFS` free unknowns on (docs/simulator.md, "Linear
 solver": the 3D crossover measured on one thread with `python -m ggns bench solvers`); it never
-chooses banded.
+chooses banded (the cavity presets name it).
 """
 from __future__ import annotations
 

@@ -147,12 +147,15 @@ def test_cli_test_writes_paper_metrics_of_the_best_checkpoint(ggns_fit, cli_data
         assert math.isclose(direct[name].mean().item(), s["mean"], rel_tol=1e-5, abs_tol=1e-12), name
 
 
-def test_rollout_evaluation_refuses_what_it_cannot_log(tiny_data_dir, tmp_path):
+def test_rollout_evaluation_refuses_what_it_cannot_log(tiny_data_dir, tmp_path, capsys):
     """val/m10_mse on trajectories of T <= 10 states, or a primary family the model does not evaluate:
     an error at the start of fit naming the setting, not a ModelCheckpoint failing after training."""
-    with pytest.raises(ValueError, match=r"val/m10_mse needs val trajectories of more than 10 states, these have 8; "
-                                         r"set m_plus_10: false"):
+    with pytest.raises(SystemExit) as exit_info:
         run_cli(["fit", *cli_args("mgn", tiny_data_dir, tmp_path, "fit", "--data.dataset", "plate_tiny")])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "Traceback" not in err
+    assert ("error: RolloutEvaluation: val/m10_mse needs val trajectories of more than 10 states, these have 8; "
+            "set m_plus_10: false") in err
     assert not list(tmp_path.rglob("*.ckpt"))
     with pytest.raises(ValueError, match=r"primary 'k1' is not evaluated for MGN; choose one of \['never', 'm10'\]"):
         RolloutEvaluation(primary="k1").primary_family(make(MGN))

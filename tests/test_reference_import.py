@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import re
 import sys
 from pathlib import Path
 
@@ -290,13 +291,15 @@ def test_imported_plate_trains_and_tests_through_the_cli(imported_plate, tmp_pat
 
 
 @pytest.mark.usefixtures("single_thread")
-def test_imported_tissue_trains_and_names_what_needs_cells(tmp_path, monkeypatch):
+def test_imported_tissue_trains_and_names_what_needs_cells(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", ["ggns"])
     for split, seeds in (("train", [0, 1, 2]), ("val", [3]), ("test", [4])):
         source = write(tmp_path / f"tissue_manipulation_dataset_{split}.pkl", [tissue_record(s) for s in seeds])
         import_reference(source, load_config("reference_tissue"), split, tmp_path / "data")
     with pytest.warns(UserWarning, match="RolloutPictures: val trajectory 0 has no cells"):
         run = cli(tmp_path / "logs", "tissue", tmp_path / "data", "fit", *FIT_ONE_EPOCH)
-    with pytest.raises(ValueError, match="volume IoU needs tetrahedra .* --model.init_args.test_iou false"):
+    with pytest.raises(SystemExit) as exit_info:
         cli(tmp_path / "logs", "tissue", tmp_path / "data", "test", "--ckpt_path",
             str(run / "checkpoints" / "last.ckpt"))
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and re.search("error: .*volume IoU needs tetrahedra .* --model.init_args.test_iou false", err)

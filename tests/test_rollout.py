@@ -151,7 +151,9 @@ def test_non_finite_step_raises_naming_step_and_trajectory(batch):
             displacement[node, 0] = float("nan")
         return displacement, state
 
-    with pytest.raises(RolloutError, match=r"step 2 .*\[1\]"):
+    local = node - batch.node_offsets[1]
+    with pytest.raises(RolloutError, match=rf"step 2 .*\[1\] of the batch; the first: mesh node {local} of "
+                                           rf"trajectory 1, predicted position \[nan, "):
         rollout(step_fn, batch, EveryK(1), CONN)
 
 

@@ -91,11 +91,16 @@ def m_plus_10_rollouts(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Co
 
 
 def _check_finite(pos: Tensor, batch: TrajectoryBatch, t: int) -> None:
-    """Raise RolloutError if pos [sumN, d] (the prediction of state t+1) is not finite."""
+    """Raise RolloutError if pos [sumN, d] (the prediction of state t+1) is not finite, naming the
+    step, the trajectories, and the first such node (its index within its trajectory) and value."""
     bad = ~torch.isfinite(pos).all(dim=1)
     if bad.any():
         trajectories = batch.mesh_batch[bad].unique().tolist()
+        first = int(torch.nonzero(bad)[0])
+        trajectory = int(batch.mesh_batch[first])
+        node = first - batch.node_offsets[trajectory]
         raise RolloutError(
             f"rollout diverged at prediction step {t} (state {t} -> {t + 1}): non-finite positions "
-            f"in trajectory index(es) {trajectories} of the batch"
+            f"in trajectory index(es) {trajectories} of the batch; the first: mesh node {node} of trajectory "
+            f"{trajectory}, predicted position {pos[first].tolist()}"
         )

@@ -103,6 +103,7 @@ def _entry_points(checkpoint: Path, data: Path, preset: Path, out: Path) -> dict
     return {
         "fit": ["fit", *lightning, "--trainer.max_steps", "1", "--trainer.default_root_dir", str(out)],
         "test": ["test", *lightning, "--ckpt_path", str(checkpoint)],
+        "predict": ["predict", *lightning, "--ckpt_path", str(checkpoint)],
         "rollout": ["rollout", "--checkpoint", str(checkpoint), "--input", str(split_path(data, "test")),
                     "--output", str(out / "predictions.h5")],
         "export": ["export", "--checkpoint", str(checkpoint), "--dataset", str(preset), "--output", str(out / "export")],
@@ -115,10 +116,10 @@ def _entry_points(checkpoint: Path, data: Path, preset: Path, out: Path) -> dict
     }
 
 
-ENTRY_POINTS = ("fit", "test", "rollout", "export", "diagnose", "geometry", "bench tradeoff")
+ENTRY_POINTS = ("fit", "test", "predict", "rollout", "export", "diagnose", "geometry", "bench tradeoff")
 # these generate a preset's missing split files by design (the data module's generate_missing): a
 # missing file is not an error for them
-GENERATE_MISSING = {"fit", "test", "bench tradeoff"}
+GENERATE_MISSING = {"fit", "test", "predict", "bench tradeoff"}
 MATRIX = [(bad, entry) for bad in sorted(BAD_FILES) for entry in ENTRY_POINTS
           if not (bad == "missing file" and entry in GENERATE_MISSING)]
 

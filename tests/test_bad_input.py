@@ -66,7 +66,7 @@ BAD_FILES = {
                            "incomplete file"),
     "NaN positions": (lambda p: _edit(p, _nan), "contains NaN or inf"),
     "material out of range": (lambda p: _edit(p, lambda f, g: g.attrs.__setitem__("poissons_ratio", 0.7)),
-                              "poissons_ratio: must lie in (-1, 0.5)"),
+                              "Poisson's ratio must satisfy -1 < nu < 0.5"),
     "topology (edge beyond the nodes)": (lambda p: _edit(p, _edge_beyond_nodes), "indices must lie in"),
 }
 

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..trajectory import Trajectory
 from ..geometry import signed_volumes
+from ..sim.material import Material
 
 SCHEMA_VERSION = 1
 FORMAT = "ggns-trajectories"
@@ -107,11 +108,10 @@ def validate_trajectory(traj: Trajectory, dim: int) -> None:
         value = getattr(traj, name)
         if not isinstance(value, (int, float, np.integer, np.floating)) or not np.isfinite(value):
             raise ValueError(f"attribute {name}: expected a finite number, got {value!r}")
-    if not traj.youngs_modulus > 0:
-        raise ValueError(f"attribute youngs_modulus: must be > 0 Pa, got {traj.youngs_modulus!r}")
-    if not -1.0 < traj.poissons_ratio < 0.5:
-        raise ValueError(f"attribute poissons_ratio: must lie in (-1, 0.5) for a stable isotropic material, "
-                         f"got {traj.poissons_ratio!r}")
+    try:  # the simulator's own range check of a material
+        Material(float(traj.youngs_modulus), float(traj.poissons_ratio))
+    except ValueError as error:
+        raise ValueError(f"attributes youngs_modulus, poissons_ratio: {error}") from None
     if not isinstance(traj.seed, (int, np.integer)) or isinstance(traj.seed, bool):
         raise ValueError(f"attribute seed: expected an integer, got {traj.seed!r}")
     for key, value in traj.params.items():

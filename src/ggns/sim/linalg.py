@@ -20,7 +20,8 @@ docs/simulator.md); a compact mesh's bandwidth grows as n^(2/3), so on large com
 should win again (not measured). Its results equal the sparse back end's to round-off (not bit for
 bit), which is why `auto` does not pick it: the plate's and the tissue's data stay bit for bit. LAPACK runs on one BLAS thread (threadpoolctl): the simulator is
 single-threaded by design (generation runs one trajectory per worker process), and OpenBLAS's own
-threads beside busy cores made a cavity trajectory 2-3x slower than one thread (measured).
+threads beside busy cores made a cavity trajectory 2-3x slower than one thread (a throwaway
+script, docs/simulator.md).
 
 `auto` chooses sparse from `SPARSE_MIN_FREE_DOFS` free unknowns on (docs/simulator.md, "Linear
 solver": the 3D crossover measured on one thread with `python -m ggns bench solvers`); it never

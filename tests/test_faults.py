@@ -13,11 +13,13 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 
 from ggns.config import load_config
 from ggns.data.generate import generate, regenerate, split_path
 from ggns.data.resume import SplitParts, remove_stale_partials
 from ggns.data.schema import DatasetError, SplitReader, content_hash
+from kill_points import HOOKS
 
 ROOT = Path(__file__).resolve().parents[1]
 COUNT = 6  # plate_tiny train trajectories of 8 steps: about 0.3 s each
@@ -92,3 +94,138 @@ def test_a_live_writers_temporary_file_is_left_alone(tmp_path):
     assert live.exists() and not dead.exists()
     with pytest.raises(DatasetError):
         SplitReader(live)
+
+
+# ---- fit: SIGKILL at seeded points of a real `python -m ggns fit`, then the same command resumes --------------
+FIT_STEPS = 15  # 3 epochs x 5 batches (33 windows of cli_data in batches of 8: the last batch holds 1)
+# (hook, global step) of each kill: seeded, one per hook; checkpoints every 3 steps, so most kills lose steps
+FIT_KILLS = list(zip(HOOKS, random.Random(230).sample(range(1, FIT_STEPS - 1), len(HOOKS))))
+
+
+def _fit_config(directory: Path) -> Path:
+    """conf/plate/ggns.yaml with its last.ckpt written every 3 steps instead of at epoch ends, so that
+    kills land in the middle of an epoch, between two checkpoints."""
+    import yaml
+
+    from ggns.config import CONF_DIR
+
+    config = yaml.safe_load((CONF_DIR / "plate" / "ggns.yaml").read_text())
+    (last,) = [c for c in config["trainer"]["callbacks"] if c.get("init_args", {}).get("filename") == "last"]
+    last["init_args"] = {"filename": "last", "every_n_train_steps": 3}
+    path = directory / "ggns_last_every_3_steps.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def _fit_command(data, logs, version: str, resume: Path | None = None) -> list[str]:
+    from conftest import TINY12
+
+    return [sys.executable, "-m", "ggns", "fit", "--config", str(_fit_config(logs)),
+            "--data.dataset", str(data / TINY12), "--data.data_dir", str(data), "--data.batch_size", "8",
+            "--data.generate_missing", "false", "--seed_everything", "0",
+            "--model.init_args.latent", "16", "--model.init_args.blocks", "2",
+            "--trainer.logger.init_args.save_dir", str(logs), "--trainer.logger.init_args.version", version,
+            "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false",
+            "--trainer.max_epochs", "3", "--trainer.log_every_n_steps", "1",
+            "--trainer.check_val_every_n_epoch", "1", "--trainer.limit_val_batches", "1",
+            "--trainer.callbacks+=kill_points.KillAt", *(["--ckpt_path", str(resume)] if resume is not None else [])]
+
+
+def _fit(command: list[str], kill: tuple[str, int] | None = None) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")]),
+           "OMP_NUM_THREADS": "1"}
+    env.pop("GGNS_KILL_AT", None)
+    if kill is not None:
+        env["GGNS_KILL_AT"] = f"{kill[0]}:{kill[1]}"
+    return subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+
+
+def _losses(run: Path) -> dict[int, float]:
+    """{step: train/loss} of a run's TensorBoard files, the newest file's value where two logged a step."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    losses = {}
+    for path in sorted(run.glob("events.out.tfevents.*"), key=lambda p: p.stat().st_mtime):
+        acc = EventAccumulator(str(path), size_guidance={"scalars": 0})
+        acc.Reload()
+        if "train/loss" in acc.Tags()["scalars"]:
+            losses.update({e.step: e.value for e in acc.Scalars("train/loss")})
+    return losses
+
+
+@pytest.fixture(scope="module")
+def uninterrupted_fit(cli_data, tmp_path_factory):
+    logs = tmp_path_factory.mktemp("fit_logs")
+    done = _fit(_fit_command(cli_data, logs, "whole"))
+    assert done.returncode == 0, done.stderr[-3000:]
+    run = logs / "ggns" / "whole"
+    last = torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)
+    assert last["global_step"] == FIT_STEPS
+    return last["state_dict"], _losses(run)
+
+
+@pytest.mark.parametrize("kill", FIT_KILLS, ids=[f"{h}-{s}" for h, s in FIT_KILLS])
+def test_a_fit_killed_with_sigkill_resumes_to_the_same_weights_and_losses(cli_data, tmp_path, uninterrupted_fit,
+                                                                          kill):
+    """Killed at `kill`, the fit is rerun with --ckpt_path of the last.ckpt it left (a fresh start if none):
+    the resumed fit trains on the windows, with the noise and imputation draws, the uninterrupted one did
+    (the data order and torch's generator state resume from the checkpoint), so its losses and final
+    weights equal the uninterrupted run's; we ask for float equality within 1e-6 relative (on the
+    CPU they come out bit for bit)."""
+    weights, losses = uninterrupted_fit
+    killed = _fit(_fit_command(cli_data, tmp_path, "run"), kill=kill)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
+    last = tmp_path / "ggns" / "run" / "checkpoints" / "last.ckpt"
+    resumed_from = torch.load(last, weights_only=True)["global_step"] if last.is_file() else 0
+    assert resumed_from <= kill[1]
+    rerun = _fit(_fit_command(cli_data, tmp_path, "run", resume=last if last.is_file() else None))
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    final = torch.load(last, weights_only=True)
+    assert final["global_step"] == FIT_STEPS
+    assert final["state_dict"].keys() == weights.keys()
+    for name, value in weights.items():
+        torch.testing.assert_close(final["state_dict"][name], value, rtol=1e-6, atol=1e-9, msg=name)
+    again = _losses(tmp_path / "ggns" / "run")
+    assert sorted(again) == sorted(losses) and len(losses) == FIT_STEPS
+    for step in losses:
+        assert again[step] == pytest.approx(losses[step], rel=1e-6), step
+
+
+# ---- sharded generation (a SLURM array): shards made apart, merged, equal to one machine's split ---------------
+def test_shards_made_apart_merge_to_the_split_one_machine_makes(tmp_path, uninterrupted, capsys):
+    from ggns.__main__ import main
+
+    out = tmp_path / "out"
+    common = ["--config", "plate_tiny", "--output", str(out), "--split", "train", "--count", str(COUNT)]
+    for i in range(3):  # 6 trajectories in 4 shards: 2, 2, 1, 1
+        main(["generate", *common, "--shard", f"{i}/4", "--workers", "1"])
+    # the last as a SLURM array task would make it, through the job script
+    task = subprocess.run(["bash", "scripts/slurm/generate_shards.sh", "plate_tiny", "4", "--output", str(out),
+                           "--split", "train", "--count", str(COUNT)], cwd=ROOT, capture_output=True, text=True,
+                          env={**os.environ, "SLURM_ARRAY_TASK_ID": "3", "SLURM_CPUS_PER_TASK": "1"})
+    assert task.returncode == 0, task.stderr[-2000:]
+    shards = [split_path(out, "train").with_name(f"train.shard-{i}-of-4.h5") for i in range(4)]
+    assert [len(SplitReader(s)) for s in shards] == [2, 2, 1, 1] and not split_path(out, "train").exists()
+    main(["generate", *common, "--merge-shards", "4"])
+    assert content_hash(split_path(out, "train")) == uninterrupted
+    assert all(s.exists() for s in shards)  # kept
+    # refused, with the output left as it was: an existing split, a missing shard, a shard of another seed
+    capsys.readouterr()
+    before = split_path(out, "train").read_bytes()
+    with pytest.raises(SystemExit):
+        main(["generate", *common, "--merge-shards", "4"])
+    assert "already exists" in capsys.readouterr().err
+    shards[3].rename(tmp_path / "away.h5")
+    with pytest.raises(SystemExit):
+        main(["generate", *common, "--merge-shards", "4", "--overwrite"])
+    assert "train.shard-3-of-4.h5" in capsys.readouterr().err
+    main(["generate", *common, "--shard", "3/4", "--workers", "1", "--seed", "7", "--output", str(tmp_path / "other")])
+    (tmp_path / "other" / shards[3].name).rename(shards[3])
+    with pytest.raises(SystemExit):
+        main(["generate", *common, "--merge-shards", "4", "--overwrite"])
+    assert "another configuration" in capsys.readouterr().err
+    assert split_path(out, "train").read_bytes() == before
+    for bad in ("4/4", "1", "a/b"):
+        with pytest.raises(SystemExit):
+            main(["generate", *common, "--shard", bad])
+        assert "--shard" in capsys.readouterr().err

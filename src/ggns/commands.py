@@ -19,8 +19,12 @@ Split = Literal["train", "val", "test"]
 
 def generate(*overrides: str, config: str = "plate", split: Sequence[Split] | None = None, count: int | None = None,
              seed: int | None = None, output: str | None = None, workers: int | None = None,
-             overwrite: bool = False) -> list[Path]:
+             overwrite: bool = False, shard: str | None = None, merge_shards: int | None = None) -> list[Path]:
     """Generate dataset splits (simulate, observe, write HDF5).
+
+    On a cluster, one job per shard (scripts/slurm_generate.sh): `--shard i/n` makes every n-th
+    trajectory of each split from the i-th into <split>.shard-<i>-of-<n>.h5, and `--merge-shards n`
+    then writes <split>.h5 from them, bit for bit what one machine would make.
 
     Args:
         overrides: config overrides as key=value, e.g. scene.num_steps=20 (a key the preset lacks is an error)
@@ -31,9 +35,11 @@ def generate(*overrides: str, config: str = "plate", split: Sequence[Split] | No
         output: output directory, one <split>.h5 per split (default: the config's)
         workers: parallel worker processes (default: the config's)
         overwrite: replace existing split files
+        shard: i/n, make shard i (from 0) of n of each chosen split (its own file)
+        merge_shards: n, write the split files from their n shard files (simulates nothing)
     """
     from .config import load_config
-    from .data.generate import generate as generate_splits
+    from .data.generate import generate as generate_splits, merge_shards as merge_split_shards, parse_shard
 
 
     overrides = list(overrides)
@@ -44,7 +50,14 @@ def generate(*overrides: str, config: str = "plate", split: Sequence[Split] | No
         if not split:
             raise ValueError("--count needs --split (which split gets that many trajectories)")
         overrides += [f"splits.{s}={count}" for s in split]
-    paths = generate_splits(load_config(config, overrides), list(split) if split else None, overwrite=overwrite)
+    if shard is not None and merge_shards is not None:
+        raise ValueError("--shard makes one shard, --merge-shards merges them all: give one of them")
+    chosen = list(split) if split else None
+    if merge_shards is not None:
+        paths = merge_split_shards(load_config(config, overrides), merge_shards, chosen, overwrite=overwrite)
+    else:
+        paths = generate_splits(load_config(config, overrides), chosen, overwrite=overwrite,
+                                shard=parse_shard(shard) if shard is not None else None)
     for path in paths:
         print(path)
     return paths

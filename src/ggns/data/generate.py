@@ -8,6 +8,13 @@ arrays depend neither on the number of workers nor on the other trajectories, an
 stored with it regenerates it alone. Balanced splits cycle through the scene's shape x
 material combinations (trajectory i uses combination i mod their number).
 
+Shards (a cluster's job array, `generate --shard i/n`): shard i of n makes the trajectories j of each
+split with j mod n = i, into its own file <split>.shard-<i>-of-<n>.h5 (resumable like a whole split);
+the shards need nothing from each other, so n machines make a split in 1/n of the time.
+`merge_shards` then writes <split>.h5 from the n shard files, trajectory j from shard j mod n after
+checking its configuration and seed: bit for bit the file one machine would have made (the merge
+only copies arrays; the shard files are kept).
+
 Other cameras, same trajectories: a preset with `states_from: <data preset>` (same scene, solver
 and seed, another sensor) does not simulate. It reads the states of that preset's split files
 (generating a missing one first) and observes them with its own cameras (the scene's
@@ -28,7 +35,7 @@ from tqdm import tqdm
 from ..scenes import SCENES
 from ..sensors.camera import DepthSensor, SensorConfig
 from .resume import SplitParts, remove_stale_partials
-from .schema import SplitReader, config_differences
+from .schema import DatasetError, SplitReader, SplitWriter, config_differences
 
 SPLIT_CODES = {"train": 0, "val": 1, "test": 2}
 
@@ -90,9 +97,26 @@ def trajectory_jobs(config: dict, split: str, count: int) -> list[tuple[int, int
     return [(i % combos, trajectory_seed(config["seed"], split, i)) for i in range(count)]
 
 
-def generate(config: dict, splits: list[str] | None = None, *, overwrite: bool = False, progress: bool = True) -> list[Path]:
+def shard_path(output: str | Path, split: str, shard: int, shards: int) -> Path:
+    return Path(output) / f"{split}.shard-{shard}-of-{shards}.h5"
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """"i/n" -> (i, n), with 0 <= i < n."""
+    try:
+        shard, shards = (int(x) for x in str(text).split("/"))
+    except ValueError:
+        raise ValueError(f"--shard must be i/n (shard i of n, from 0), got {text!r}") from None
+    if not 0 <= shard < shards:
+        raise ValueError(f"--shard {text}: need 0 <= i < n")
+    return shard, shards
+
+
+def generate(config: dict, splits: list[str] | None = None, *, overwrite: bool = False, progress: bool = True,
+             shard: tuple[int, int] | None = None) -> list[Path]:
     """Generate the splits named in config['splits'] (or the given subset) into
-    <output>/<split>.h5, with config['workers'] processes; returns the file paths."""
+    <output>/<split>.h5, with config['workers'] processes; returns the file paths. shard (i, n):
+    only the trajectories j with j mod n = i, into <split>.shard-<i>-of-<n>.h5 (module docstring)."""
     name, sizes = config["scene"]["name"], config["splits"]
     if name not in SCENES:
         raise ValueError(f"unknown scene {name!r}; known: {sorted(SCENES)}")
@@ -106,7 +130,8 @@ def generate(config: dict, splits: list[str] | None = None, *, overwrite: bool =
     if bad:
         raise ValueError(f"split sizes must be >= 1, got {bad}")
     source = check_states_from(config) if config.get("states_from") else None
-    paths = [split_path(config["output"], s) for s in chosen]
+    paths = [split_path(config["output"], s) if shard is None else shard_path(config["output"], s, *shard)
+             for s in chosen]
     existing = [str(p) for p in paths if p.exists()]
     if existing and not overwrite:
         raise FileExistsError(f"{existing} already exist; pass --overwrite (overwrite=True) to replace them")
@@ -121,26 +146,77 @@ def generate(config: dict, splits: list[str] | None = None, *, overwrite: bool =
     try:
         for split, path in zip(chosen, paths):
             jobs = trajectory_jobs(config, split, int(sizes[split]))
+            mine = list(range(len(jobs))) if shard is None else list(range(shard[0], len(jobs), shard[1]))
+            if not mine:
+                raise ValueError(f"shard {shard[0]}/{shard[1]} of the {split} split's {len(jobs)} trajectories is empty")
             remove_stale_partials(path.parent, log)
             parts = SplitParts(path, config, scene=name, split=split, dim=dim, log=log)
             done = parts.done(jobs)
-            todo = [i for i in range(len(jobs)) if i not in done]
+            todo = [i for i in mine if i not in done]
             if source is not None:
                 stored = stored_states(config, source, split, len(jobs), progress=progress, indices=todo)
                 results = pool.imap(_observe, stored) if pool else map(_observe, stored)
             else:
                 todo_jobs = [jobs[i] for i in todo]
                 results = pool.imap(_make, todo_jobs) if pool else map(_make, todo_jobs)
-            with tqdm(total=len(jobs), initial=len(done), desc=f"{name}/{split}", unit="traj",
+            with tqdm(total=len(mine), initial=len(mine) - len(todo), desc=f"{name}/{split}", unit="traj",
                       disable=not progress) as bar:
                 for index, trajectory in zip(todo, results):
                     parts.write(index, trajectory)
                     bar.update()
-            parts.merge(len(jobs), overwrite=overwrite)
+            parts.merge(len(jobs), overwrite=overwrite, indices=mine)
     finally:
         if pool is not None:
             pool.terminate()
         torch.set_num_threads(threads)
+    return paths
+
+
+def merge_shards(config: dict, shards: int, splits: list[str] | None = None, *, overwrite: bool = False,
+                 progress: bool = True) -> list[Path]:
+    """<split>.h5 from the `shards` files <split>.shard-<i>-of-<shards>.h5 of `generate(shard=...)`:
+    trajectory j from shard j mod shards, each shard checked to hold this config's trajectories
+    (configuration, count, seeds), written atomically; returns the split files. The shards are kept."""
+    if shards < 1:
+        raise ValueError(f"--merge-shards needs the number of shards (>= 1), got {shards}")
+    name, sizes = config["scene"]["name"], config["splits"]
+    chosen = list(sizes) if splits is None else list(splits)
+    paths = []
+    for split in chosen:
+        path = split_path(config["output"], split)
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path} already exists; pass --overwrite (overwrite=True) to replace it")
+        jobs = trajectory_jobs(config, split, int(sizes[split]))
+        files = [shard_path(config["output"], split, i, shards) for i in range(shards)]
+        missing = [str(f) for f in files if not f.exists()]
+        if missing:
+            raise FileNotFoundError(f"shards {missing[:4]} are missing: generate them (generate --shard i/{shards})")
+        readers = []
+        try:
+            for i, file in enumerate(files):
+                reader = SplitReader(file)
+                readers.append(reader)
+                differ = config_differences(reader.generator_config, config)
+                if reader.generator_config.get("seed") != config["seed"]:
+                    differ.append(f"seed {reader.generator_config.get('seed')} there, {config['seed']} here")
+                if differ:
+                    raise DatasetError(f"{file}: made with another configuration ({', '.join(differ[:4])})")
+                expected = len(range(i, len(jobs), shards))
+                if len(reader) != expected:
+                    raise DatasetError(f"{file}: holds {len(reader)} trajectories, shard {i}/{shards} of {len(jobs)} "
+                                       f"has {expected}")
+            with SplitWriter(path, scene=name, split=split, dim=SCENES[name].DIM, generator_config=config,
+                             overwrite=overwrite) as writer:
+                for j in tqdm(range(len(jobs)), desc=f"merge {split}", unit="traj", disable=not progress):
+                    reader, k = readers[j % shards], j // shards
+                    if reader.seed(k) != jobs[j][1]:
+                        raise DatasetError(f"{files[j % shards]}: trajectory {k} has seed {reader.seed(k)}, "
+                                           f"trajectory {j} of the split has {jobs[j][1]}")
+                    writer.append(reader[k])
+        finally:
+            for reader in readers:
+                reader.close()
+        paths.append(path)
     return paths
 
 

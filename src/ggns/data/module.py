@@ -6,6 +6,15 @@ Batches are `TrajectoryBatch`es (moved to the model's device by Lightning throug
   them into graphs on its own device (imputation, noise), so the loaders do no graph work;
 - test / predict: whole trajectories, `eval_batch_size` at a time, for batched rollouts.
 
+The training order is a function of the seed, the epoch and the process's rank alone (`EpochSampler`):
+each of `world_size` processes (Lightning DDP) takes every world_size-th window of the epoch's
+permutation, and a fit resumed from a checkpoint saved in the middle of an epoch (a cluster's
+pre-emption, a SIGKILL) starts that epoch's permutation after the batches its `global_step` says
+were already trained on, so the resumed fit sees the windows the uninterrupted one would have. No
+loader draws from torch's global random generator (each has its own), so the training noise and the
+imputation draws, which do, are the same sequence however the loaders are created (the model saves
+that generator's state in its checkpoints, `GraphSimulator.on_save_checkpoint`).
+
 The dataset is named by a data preset (conf/data/<name>.yaml or a YAML path): its `output`
 directory holds <split>.h5. Missing splits are generated from the preset in `prepare_data`
 when `generate_missing` is set; otherwise a FileNotFoundError says how to generate them. A
@@ -16,10 +25,14 @@ the preset's is refused (`schema.read_trajectories`), never mixed in silently.
 """
 from __future__ import annotations
 
+import math
+import os
+import warnings
 from pathlib import Path
 
 import pytorch_lightning as pl
-from torch.utils.data import DataLoader, Dataset
+import torch
+from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
 from ..config import load_config
 from ..batch import TrajectoryBatch
@@ -68,6 +81,37 @@ class TrajectoryDataset(Dataset):
         return self.trajectories[i]
 
 
+# Lightning warns that a fit resumed in the middle of an epoch is unreliable unless its loader has a
+# state_dict; ours resumes from the trainer's global step instead (`EpochSampler.resume`), tested in
+# tests/test_faults.py
+warnings.filterwarnings("ignore", message="You're resuming from a checkpoint that ended before the epoch ended")
+
+
+class EpochSampler(DistributedSampler):
+    """The training windows' order: epoch e's permutation comes from torch.Generator seeded with
+    seed + e (torch's DistributedSampler), of which rank r of `num_replicas` takes every
+    num_replicas-th index (the epoch padded by repeating its first indices to a multiple of
+    num_replicas, as DistributedSampler does). `start`: indices of this rank to skip in the next
+    iteration only (a fit resumed in the middle of an epoch), `resume` sets it from a global step."""
+
+    def __init__(self, dataset: Dataset, seed: int, num_replicas: int = 1, rank: int = 0):
+        super().__init__(dataset, num_replicas=num_replicas, rank=rank, shuffle=True, seed=seed, drop_last=False)
+        self.start = 0
+
+    def resume(self, batches_done: int, batch_size: int, batches_per_epoch: int) -> None:
+        """Position at the start of the batch after the first `batches_done` of the fit (all epochs)."""
+        if batches_per_epoch < 1:
+            return
+        epoch, done = divmod(batches_done, batches_per_epoch)
+        self.set_epoch(epoch)
+        self.start = done * batch_size
+
+    def __iter__(self):
+        indices = list(super().__iter__())
+        start, self.start = self.start, 0
+        return iter(indices[start:])
+
+
 def collate(trajectories: list[Trajectory]) -> TrajectoryBatch:
     return TrajectoryBatch.from_trajectories(trajectories)
 
@@ -82,11 +126,13 @@ class SimulationDataModule(pl.LightningDataModule):
         max_eval_trajectories: use only the first n val / test trajectories (None: all).
         num_workers: DataLoader worker processes.
         generate_missing: generate absent split files from the preset in `prepare_data`.
+        seed: of the training order (`EpochSampler`); None takes the fit's `seed_everything` (Lightning's
+            PL_GLOBAL_SEED), else 0.
     """
 
     def __init__(self, dataset: str = "plate_small", data_dir: str | None = None, batch_size: int = 32,
                  train_window: int | None = None, eval_batch_size: int = 32, max_eval_trajectories: int | None = None,
-                 num_workers: int = 0, generate_missing: bool = True):
+                 num_workers: int = 0, generate_missing: bool = True, seed: int | None = None):
         super().__init__()
         for name, value in (("batch_size", batch_size), ("eval_batch_size", eval_batch_size)):
             if value < 1:
@@ -98,6 +144,7 @@ class SimulationDataModule(pl.LightningDataModule):
         self.train_window, self.num_workers = train_window, num_workers
         self.max_eval_trajectories = max_eval_trajectories
         self.generate_missing = generate_missing
+        self.seed = seed
         self.imported = "importer" in self.config  # the authors' data, imported: nothing to generate
         self._trajectories: dict[str, list[Trajectory]] = {}
 
@@ -141,18 +188,35 @@ class SimulationDataModule(pl.LightningDataModule):
         model = self.trainer.lightning_module if self.trainer is not None else None
         return getattr(model, "window", 1)
 
-    def _loader(self, dataset: Dataset, batch_size: int, shuffle: bool) -> DataLoader:
-        return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, collate_fn=collate,
-                          num_workers=self.num_workers, persistent_workers=self.num_workers > 0)
+    def _seed(self) -> int:
+        return self.seed if self.seed is not None else int(os.environ.get("PL_GLOBAL_SEED", 0))
+
+    def _loader(self, dataset: Dataset, batch_size: int, sampler=None) -> DataLoader:
+        # its own generator: creating an iterator (every epoch, every validation) draws the workers' base
+        # seed from it, which would otherwise shift torch's global generator, i.e. the training noise
+        return DataLoader(dataset, batch_size=batch_size, sampler=sampler, collate_fn=collate,
+                          num_workers=self.num_workers, persistent_workers=self.num_workers > 0,
+                          generator=torch.Generator().manual_seed(self._seed()))
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader(WindowDataset(self.trajectories("train"), self._window()), self.batch_size, True)
+        """Windows in `EpochSampler` order: this process's share (a rank of the trainer's world), from
+        the batch after the trainer's `global_step` (a resumed fit)."""
+        dataset = WindowDataset(self.trajectories("train"), self._window())
+        trainer = self.trainer
+        world, rank = getattr(trainer, "world_size", 1), getattr(trainer, "global_rank", 0)
+        sampler = EpochSampler(dataset, self._seed(), num_replicas=world, rank=rank)
+        if getattr(trainer, "global_step", 0) > 0:
+            batches = math.ceil(len(sampler) / self.batch_size)
+            limit = trainer.limit_train_batches
+            batches = min(batches, limit) if isinstance(limit, int) else int(batches * limit)
+            sampler.resume(trainer.global_step * trainer.accumulate_grad_batches, self.batch_size, batches)
+        return self._loader(dataset, self.batch_size, sampler)
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader(WindowDataset(self.trajectories("val"), self._window()), self.batch_size, False)
+        return self._loader(WindowDataset(self.trajectories("val"), self._window()), self.batch_size)
 
     def test_dataloader(self) -> DataLoader:
-        return self._loader(TrajectoryDataset(self.trajectories("test")), self.eval_batch_size, False)
+        return self._loader(TrajectoryDataset(self.trajectories("test")), self.eval_batch_size)
 
     def predict_dataloader(self) -> DataLoader:
         return self.test_dataloader()

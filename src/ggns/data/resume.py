@@ -118,14 +118,16 @@ class SplitParts:
                          generator_config=self.config, overwrite=True) as writer:
             writer.append(trajectory)
 
-    def merge(self, count: int, overwrite: bool = False) -> Path:
-        """Write the split file from parts 0..count-1 (atomically), then remove the parts."""
-        missing = [i for i in range(count) if not self.part(i).exists()]
+    def merge(self, count: int, overwrite: bool = False, indices: list[int] | None = None) -> Path:
+        """Write the split file from parts 0..count-1 (or those at `indices`, in that order: a shard)
+        atomically, then remove the parts."""
+        indices = list(range(count)) if indices is None else indices
+        missing = [i for i in indices if not self.part(i).exists()]
         if missing:
             raise DatasetError(f"{self.directory}: parts {missing[:10]} are missing; cannot write {self.path}")
         with SplitWriter(self.path, scene=self.scene, split=self.split, dim=self.dim,
                          generator_config=self.config, overwrite=overwrite) as writer:
-            for i in range(count):
+            for i in indices:
                 with SplitReader(self.part(i)) as reader:
                     writer.append(reader[0])
         shutil.rmtree(self.directory)

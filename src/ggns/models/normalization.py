@@ -93,6 +93,27 @@ class Normalizer(nn.Module):
         self.mean.copy_(self.acc_mean)
         self.std.copy_((self.acc_m2 / total).sqrt().clamp(min=self.std_floor))
 
+    @torch.no_grad()
+    def merge(self, counts: Tensor, means: Tensor, m2s: Tensor) -> None:
+        """Replace the statistics by the merge of several parts' (count [P], mean [P, F], sum of squared
+        deviations [P, F]), in their order: the same result on every process that merges the same parts."""
+        if self.frozen:
+            raise RuntimeError("Normalizer is frozen; its statistics can no longer change")
+        count, mean, m2 = 0.0, torch.zeros_like(self.acc_mean), torch.zeros_like(self.acc_m2)
+        for n, part_mean, part_m2 in zip(counts.tolist(), means.to(mean), m2s.to(m2)):
+            if n == 0:
+                continue
+            total = count + n
+            delta = part_mean - mean
+            mean = mean + delta * (n / total)
+            m2 = m2 + part_m2 + delta.square() * (count * n / total)
+            count = total
+        self.count.fill_(int(count))
+        self.acc_mean.copy_(mean)
+        self.acc_m2.copy_(m2)
+        self.mean.copy_(mean)
+        self.std.copy_((m2 / max(count, 1.0)).sqrt().clamp(min=self.std_floor) if count else torch.ones_like(self.std))
+
     def forward(self, x: Tensor) -> Tensor:
         """[..., F] -> [..., F] standardized."""
         if x.shape[-1] != self.size:
@@ -105,6 +126,15 @@ class Normalizer(nn.Module):
 
     def extra_repr(self) -> str:
         return f"size={self.size}, std_floor={self.std_floor}"
+
+
+def merge_across(normalizers: list[Normalizer], all_gather) -> None:
+    """Merge each normalizer's statistics over the processes of a distributed run: `all_gather`
+    (LightningModule.all_gather) stacks a tensor of every rank on a new first axis. Every rank must
+    call it with the same normalizers in the same order."""
+    for normalizer in normalizers:
+        counts, means, m2s = (all_gather(t) for t in (normalizer.count, normalizer.acc_mean, normalizer.acc_m2))
+        normalizer.merge(counts.reshape(-1), means.reshape(-1, normalizer.size), m2s.reshape(-1, normalizer.size))
 
 
 class NormalizerDict(nn.Module):

@@ -14,7 +14,14 @@ graph`); fixed nodes take their known positions and are left out of the loss. Tr
 Gaussian noise (`noise_std`) to the free input positions and corrects the target, so the model
 learns to return to the true next state. Input features and targets are standardized with
 statistics from one pass over the training data at the start of `fit` (`statistics_batches`
-limits it), which are saved with the checkpoint.
+limits it), which are saved with the checkpoint. Under DDP every process makes the pass over its own
+share of the windows and the statistics are merged across processes (exact, `Normalizer.merge`), so
+all ranks normalize alike and as one process over the same windows would.
+
+A fit's checkpoint also holds the state of torch's random generator of every process (`RNG_KEY`:
+the training noise and the imputation draws come from it); a fit resumed from it (`fit --ckpt_path`)
+sets it back before its first batch, so that, with the data order `SimulationDataModule` resumes, the
+resumed fit repeats what the uninterrupted one would have done (tests/test_faults.py).
 """
 from __future__ import annotations
 
@@ -24,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import pytorch_lightning as pl
+from pytorch_lightning.strategies import DDPStrategy
 import torch
 from torch import Tensor, nn
 from torch_geometric.data import HeteroData
@@ -39,8 +47,10 @@ from ..graphs.types import MESH_EDGE
 from ..reports import write_json, write_text
 from .core import EncodeProcessDecode, graph_features
 from .lr_schedule import scheduled_lr, validate_schedule
-from .normalization import DEFAULT_STD_FLOOR, Normalizer
+from .normalization import DEFAULT_STD_FLOOR, Normalizer, merge_across
 from .training_noise import smooth_field
+
+RNG_KEY = "ggns_rng_states"
 
 LstmState = tuple[Tensor, Tensor] | None
 
@@ -205,8 +215,9 @@ class GraphSimulator(pl.LightningModule):
 
     def training_step(self, batch: TrajectoryBatch, batch_idx: int) -> Tensor:
         loss, groups = self.window_loss(batch, train=True, by_points=True)
-        self.log("train/loss", loss, batch_size=batch.num_graphs, prog_bar=True)
-        for name, value in groups.items():
+        sync = self._world_size() > 1  # under DDP the logged loss is the mean over the ranks' batches
+        self.log("train/loss", loss, batch_size=batch.num_graphs, prog_bar=True, sync_dist=sync)
+        for name, value in groups.items():  # a group absent from one rank's batch: that rank's value alone
             self.log(f"train/loss_{name}", value.detach(), batch_size=batch.num_graphs)
         return loss
 
@@ -240,9 +251,22 @@ class GraphSimulator(pl.LightningModule):
                 count += batch.num_graphs
         if count == 0:
             raise ValueError("no training samples for the normalization statistics")
+        if self._world_size() > 1:  # each rank saw its own windows: merge, so that every rank normalizes alike
+            merge_across([m for m in self.modules() if isinstance(m, Normalizer)], self.all_gather)
         self.core.input_normalizer.freeze()
         self.target_normalizer.freeze()
         return count
+
+    def setup(self, stage: str) -> None:
+        """Refuse DDP that would hang: a batch without contact (or without a point cloud) leaves the edge
+        MLPs of that edge type without a gradient, and DDP without find_unused_parameters then waits
+        forever for it (seen on the plate)."""
+        strategy = self.trainer.strategy if self._trainer is not None else None
+        if stage == "fit" and isinstance(strategy, DDPStrategy) and \
+                not getattr(strategy, "_ddp_kwargs", {}).get("find_unused_parameters", False):
+            raise ValueError("DDP needs find_unused_parameters: a batch without contact or point clouds leaves the "
+                             "edge MLPs of that edge type unused, and plain DDP waits for their gradients forever; "
+                             "use --trainer.strategy ddp_find_unused_parameters_true")
 
     def on_fit_start(self) -> None:
         if self.target_normalizer.frozen:  # resumed or fine-tuned: statistics come from the checkpoint
@@ -294,13 +318,45 @@ class GraphSimulator(pl.LightningModule):
                 "node_offsets": batch.node_offsets}
 
     # ---- checkpoints -------------------------------------------------------------------------
+    def _world_size(self) -> int:
+        return self._trainer.world_size if self._trainer is not None else 1
+
+    def _rng_states(self) -> dict[str, Tensor]:
+        """{generator: state of every rank [world size, n] uint8}: torch's CPU generator, and the CUDA one
+        of this device when on a GPU (gathered from every rank under DDP: all ranks save together)."""
+        states = {"cpu": torch.get_rng_state()}
+        if self.device.type == "cuda":
+            states["cuda"] = torch.cuda.get_rng_state(self.device)
+        if self._world_size() > 1:
+            return {k: self.all_gather(v.to(self.device)).cpu() for k, v in states.items()}
+        return {k: v[None] for k, v in states.items()}
+
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["connectivity"] = dataclasses.asdict(self.connectivity)
         checkpoint["simulator_class"] = type(self).__name__
         checkpoint[FORMAT_KEY] = CHECKPOINT_FORMAT
+        if self._trainer is not None and self.trainer.state.fn == "fit":  # a fit's checkpoint: resumable
+            checkpoint[RNG_KEY] = self._rng_states()
+
+    def on_train_start(self) -> None:
+        """A resumed fit takes back its generators' states (saved by `on_save_checkpoint`) just before its
+        first batch: nothing between loading and here (validation, loaders) draws from them."""
+        states, self._saved_rng = getattr(self, "_saved_rng", None), None
+        if states is None or self.trainer.ckpt_path is None:
+            return
+        rank, world = self.global_rank, self._world_size()
+        if any(v.shape[0] != world for v in states.values()):
+            warnings.warn(f"the checkpoint was written by a fit of {next(iter(states.values())).shape[0]} processes, "
+                          f"this one has {world}: its random generators start afresh and the resumed fit "
+                          "differs from an uninterrupted one", stacklevel=2)
+            return
+        torch.set_rng_state(states["cpu"][rank].clone())
+        if "cuda" in states and self.device.type == "cuda":
+            torch.cuda.set_rng_state(states["cuda"][rank].clone(), self.device)
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         check_format(checkpoint, "the checkpoint")
+        self._saved_rng = checkpoint.get(RNG_KEY)  # taken back by on_train_start when the fit resumes
         saved = checkpoint.get("connectivity")
         if saved is not None and saved != dataclasses.asdict(self.connectivity):
             warnings.warn(f"connectivity preset {self.hparams.connectivity!r} changed since the checkpoint was "

@@ -1,0 +1,118 @@
+"""Beyond one process (issue 23): Lightning DDP on the CPU (gloo, 2 real processes launched by
+`python -m ggns fit --trainer.strategy ddp --trainer.devices 2`). Each rank trains on its own share of
+every batch of windows (`EpochSampler`), the normalizer's statistics are merged across the ranks,
+and the logged loss is the ranks' mean, so 2 processes with batches of B train as 1 process with
+batches of 2B: the same windows per step, the same statistics, the same gradient (DDP averages the
+ranks' gradients; plate meshes have the same node count, so the mean of the two halves' node means
+is the mean over all nodes). MGN without training noise, so that no random draw differs between them."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from torch.utils.data import TensorDataset
+
+from ggns.config import CONF_DIR
+from ggns.data.module import EpochSampler
+from ggns.models.normalization import Normalizer, merge_across
+from test_faults import _losses
+from conftest import TINY12
+
+ROOT = Path(__file__).resolve().parents[1]
+STEPS = 8  # 2 epochs of 4 batches
+
+
+def _fit(data, logs, version: str, processes: int, batch_size: int,
+         strategy: str = "ddp_find_unused_parameters_true") -> subprocess.CompletedProcess:
+    command = [sys.executable, "-m", "ggns", "fit", "--config", str(CONF_DIR / "plate" / "mgn.yaml"),
+               "--data.dataset", str(data / TINY12), "--data.data_dir", str(data),
+               "--data.batch_size", str(batch_size), "--data.generate_missing", "false", "--seed_everything", "0",
+               "--model.init_args.latent", "16", "--model.init_args.blocks", "2", "--model.init_args.noise_std", "0",
+               "--model.init_args.statistics_batches", "4",
+               "--trainer.logger.init_args.save_dir", str(logs), "--trainer.logger.init_args.version", version,
+               "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false",
+               "--trainer.max_epochs", "2", "--trainer.limit_train_batches", "4", "--trainer.limit_val_batches", "0",
+               "--trainer.log_every_n_steps", "1", "--trainer.accelerator", "cpu",
+               "--trainer.devices", str(processes), "--trainer.strategy", strategy]
+    # SIGKILL on timeout: a rank stuck in a collective ignores the SIGTERM that subprocess.run would send
+    with subprocess.Popen(command, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": "1"}, stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True, start_new_session=True) as proc:
+        try:
+            out, err = proc.communicate(timeout=300)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            raise
+    return subprocess.CompletedProcess(command, proc.returncode, out, err)
+
+
+def test_two_ddp_processes_train_as_one_with_twice_the_batch(cli_data, tmp_path):
+    for version, processes, batch_size in (("one", 1, 8), ("two", 2, 4)):
+        done = _fit(cli_data, tmp_path, version, processes=processes, batch_size=batch_size,
+                    strategy="ddp_find_unused_parameters_true" if processes > 1 else "auto")
+        assert done.returncode == 0, done.stderr[-3000:]
+    one, two = tmp_path / "mgn" / "one", tmp_path / "mgn" / "two"
+    first, second = (torch.load(run / "checkpoints" / "last.ckpt", weights_only=True) for run in (one, two))
+    assert first["global_step"] == second["global_step"] == STEPS
+    assert second["ggns_rng_states"]["cpu"].shape[0] == 2  # every rank's generator, for an exact resume
+    for name, value in first["state_dict"].items():
+        # statistics (merged in float64) and weights differ by float summation order only: 1.5e-7 relative here
+        torch.testing.assert_close(second["state_dict"][name], value, rtol=1e-4, atol=1e-6, msg=name)
+    losses, ddp = _losses(one), _losses(two)
+    assert sorted(losses) == sorted(ddp) and len(losses) == STEPS
+    for step in losses:
+        assert ddp[step] == pytest.approx(losses[step], rel=1e-4), step
+
+
+def test_plain_ddp_is_refused_before_it_can_hang(cli_data, tmp_path):
+    """Without find_unused_parameters, DDP waits forever for the gradient of an edge MLP that a batch
+    without contact did not use (it hung on the plate): refused in setup, on every rank, with the fix."""
+    done = _fit(cli_data, tmp_path, "plain", processes=2, batch_size=4, strategy="ddp")
+    assert done.returncode == 2 and "use --trainer.strategy ddp_find_unused_parameters_true" in done.stderr
+    assert not (tmp_path / "mgn" / "plain" / "checkpoints").exists()
+
+
+def test_the_ranks_share_the_epoch_and_a_resumed_epoch_skips_what_was_trained():
+    data = TensorDataset(torch.arange(10))
+    whole = list(EpochSampler(data, seed=3))
+    ranks = [list(EpochSampler(data, seed=3, num_replicas=2, rank=r)) for r in range(2)]
+    assert sorted(whole) == list(range(10)) and ranks[0] + ranks[1] != whole
+    assert [i for pair in zip(*ranks) for i in pair] == whole  # rank r takes every 2nd, from r
+    later = EpochSampler(data, seed=3)
+    later.set_epoch(1)
+    second_epoch = list(later)
+    assert second_epoch != whole and sorted(second_epoch) == list(range(10))
+    resumed = EpochSampler(data, seed=3)
+    resumed.resume(batches_done=4 + 1, batch_size=3, batches_per_epoch=4)  # 5 batches of 3: 1 into epoch 1
+    assert list(resumed) == second_epoch[3:]
+    assert list(resumed) == second_epoch  # only the first iteration after a resume is cut
+
+
+def test_normalizer_statistics_merged_across_processes_equal_one_pass_over_all():
+    torch.manual_seed(0)
+    parts = [torch.randn(n, 3, dtype=torch.float64) * 2 + 1 for n in (5, 0, 9)]
+    whole = Normalizer(3)
+    whole.update(torch.cat(parts))
+    ranks = []
+    for part in parts:
+        normalizer = Normalizer(3)
+        normalizer.update(part)
+        ranks.append(normalizer)
+    # what all_gather returns on every rank: each buffer of every rank, stacked
+    stacked = {name: torch.stack([dict(r.named_buffers())[name] for r in ranks]) for name in ("count", "acc_mean", "acc_m2")}
+    for normalizer in ranks:  # every rank merges the same parts in the same order: the same statistics
+        merge_across([normalizer], lambda t, n=normalizer: stacked[_name(n, t)].clone())
+        assert int(normalizer.count) == 14
+        torch.testing.assert_close(normalizer.acc_mean, whole.acc_mean)
+        torch.testing.assert_close(normalizer.acc_m2, whole.acc_m2)
+        torch.testing.assert_close(normalizer.std, whole.std)
+
+
+def _name(normalizer: Normalizer, tensor) -> str:
+    """The buffer name of `tensor` in `normalizer`."""
+    (name,) = [k for k, v in normalizer.named_buffers() if v is tensor]
+    return name

@@ -4,6 +4,7 @@ uninterrupted run; what the killed run left (finished parts, a writer's temporar
 truncated on disk) is reused when whole and removed otherwise, never read as complete."""
 from __future__ import annotations
 
+import json
 import os
 import random
 import signal
@@ -206,8 +207,18 @@ def test_shards_made_apart_merge_to_the_split_one_machine_makes(tmp_path, uninte
     assert task.returncode == 0, task.stderr[-2000:]
     shards = [split_path(out, "train").with_name(f"train.shard-{i}-of-4.h5") for i in range(4)]
     assert [len(SplitReader(s)) for s in shards] == [2, 2, 1, 1] and not split_path(out, "train").exists()
+    # the data module reads the shards as they are, in the split's order
+    from ggns.config import CONF_DIR
+    from ggns.data.module import SimulationDataModule
+
+    config = tmp_path / "tiny6.yaml"
+    config.write_text(f"base: {CONF_DIR / 'data' / 'plate_tiny.yaml'}\noutput: {out}\nsplits: {{train: {COUNT}}}\n")
+    read = SimulationDataModule(str(config), generate_missing=False).trajectories("train")
     main(["generate", *common, "--merge-shards", "4"])
     assert content_hash(split_path(out, "train")) == uninterrupted
+    merged = SplitReader(split_path(out, "train"))
+    assert [t.seed for t in read] == [merged.seed(j) for j in range(COUNT)]
+    assert all((a.positions == merged[j].positions).all() for j, a in enumerate(read))
     assert all(s.exists() for s in shards)  # kept
     # refused, with the output left as it was: an existing split, a missing shard, a shard of another seed
     capsys.readouterr()
@@ -229,3 +240,63 @@ def test_shards_made_apart_merge_to_the_split_one_machine_makes(tmp_path, uninte
         with pytest.raises(SystemExit):
             main(["generate", *common, "--shard", bad])
         assert "--shard" in capsys.readouterr().err
+
+
+# ---- sweep: its whole process group SIGKILLed mid-fit, then mid-test; the same command finishes it -----------
+def _sweep_file(tmp_path: Path, data: Path) -> Path:
+    import yaml
+
+    from conftest import TINY12
+    from ggns.config import CONF_DIR
+
+    tiny = ["--data.dataset", str(data / TINY12), "--data.data_dir", str(data), "--data.generate_missing", "false",
+            "--data.batch_size", "8", "--model.init_args.latent", "16", "--model.init_args.blocks", "2",
+            "--trainer.max_epochs", "3", "--trainer.limit_train_batches", "2", "--trainer.limit_val_batches", "1",
+            "--trainer.check_val_every_n_epoch", "1", "--trainer.enable_progress_bar", "false",
+            "--trainer.enable_model_summary", "false"]
+    sweep = {"output": str(tmp_path / "sweep"), "seeds": [0], "parallel": 1, "args": tiny,
+             "models": {"mgn": {"config": str(CONF_DIR / "plate" / "mgn.yaml")}}}
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    path = tmp_path / "sweep.yaml"
+    path.write_text(yaml.safe_dump(sweep))
+    return path
+
+
+def _sweep(path: Path, kill_when=None) -> int:
+    """`python -m ggns sweep --config path` in its own process group; SIGKILL to the whole group (the sweep
+    and the fit or test it runs, as a cluster does to a job) once kill_when() holds. Returns the status."""
+    proc = subprocess.Popen([sys.executable, "-m", "ggns", "sweep", "--config", str(path)], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+    deadline = time.time() + 300
+    while kill_when is not None and proc.poll() is None and time.time() < deadline:
+        if kill_when():
+            os.killpg(proc.pid, signal.SIGKILL)
+            break
+        time.sleep(0.05)
+    return proc.wait(timeout=300)
+
+
+def test_a_sweep_killed_mid_fit_and_mid_test_finishes_with_the_uninterrupted_metrics(cli_data, tmp_path):
+    """Kill points (events, not times): the fit's first last.ckpt (end of epoch 0 of 3), then the first
+    test part's output directory. Each rerun of the same command resumes: the fit from last.ckpt, the
+    tests from the parts that finished; the merged test metrics equal an uninterrupted sweep's."""
+    whole = _sweep_file(tmp_path / "whole", cli_data)
+    assert _sweep(whole) == 0
+    expected = json.loads((tmp_path / "whole" / "sweep" / "mgn" / "seed_0_test" / "test_metrics.json").read_text())
+
+    path = _sweep_file(tmp_path / "killed", cli_data)
+    run = tmp_path / "killed" / "sweep" / "mgn"
+    last = run / "seed_0" / "checkpoints" / "last.ckpt"
+    assert _sweep(path, kill_when=last.is_file) == -signal.SIGKILL
+    assert torch.load(last, weights_only=True)["global_step"] < 6  # killed before the fit's end
+    tests = run / "seed_0_test"
+    assert _sweep(path, kill_when=lambda: tests.is_dir() and any(tests.iterdir())) == -signal.SIGKILL
+    assert not (tests / "test_metrics.json").exists()
+    assert _sweep(path) == 0
+    metrics = json.loads((tests / "test_metrics.json").read_text())
+    checkpoints, expected_checkpoints = metrics.pop("checkpoints"), expected.pop("checkpoints")
+    assert {f: c["name"] for f, c in checkpoints.items()} == {f: c["name"] for f, c in expected_checkpoints.items()}
+    assert sorted(metrics) == sorted(expected)
+    for name in expected:
+        assert metrics[name]["mean"] == pytest.approx(expected[name]["mean"], rel=1e-6), name

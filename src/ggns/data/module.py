@@ -16,7 +16,8 @@ imputation draws, which do, are the same sequence however the loaders are create
 that generator's state in its checkpoints, `GraphSimulator.on_save_checkpoint`).
 
 The dataset is named by a data preset (conf/data/<name>.yaml or a YAML path): its `output`
-directory holds <split>.h5. Missing splits are generated from the preset in `prepare_data`
+directory holds <split>.h5, or the split's shard files made by a job array (`generate --shard i/n`),
+read in the split's order. Missing splits are generated from the preset in `prepare_data`
 when `generate_missing` is set; otherwise a FileNotFoundError says how to generate them. A
 preset with an `importer` section (conf/data/reference_*.yaml) names imported data (the paper
 authors' datasets, `ggns.data.reference`): it is never generated, and a missing split names the
@@ -36,7 +37,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
 from ..config import load_config
 from ..batch import TrajectoryBatch
-from .generate import generate, split_path
+from .generate import generate, read_shards, shard_files, split_path
 from .schema import read_trajectories
 from ..trajectory import Trajectory
 
@@ -152,7 +153,7 @@ class SimulationDataModule(pl.LightningDataModule):
         return split_path(self.data_dir, split)
 
     def prepare_data(self) -> None:
-        missing = [s for s in SPLITS if not self.path(s).exists()]
+        missing = [s for s in SPLITS if not self.path(s).exists() and not shard_files(self.data_dir, s)]
         if missing and self.generate_missing and not self.imported:
             generate({**self.config, "output": str(self.data_dir)}, missing)
 
@@ -162,6 +163,9 @@ class SimulationDataModule(pl.LightningDataModule):
             raise ValueError(f"unknown split {split!r}; expected one of {SPLITS}")
         if split not in self._trajectories:
             path = self.path(split)
+            shards = shard_files(self.data_dir, split) if not path.exists() else []
+            if shards:  # made by a job array (generate --shard i/n): read as they are, in the split's order
+                return self._keep(split, read_shards(shards, self.config, split), path)
             if not path.exists() and self.imported:
                 raise FileNotFoundError(
                     f"{path}: split file missing; import it with `python -m ggns import-reference --config "
@@ -170,13 +174,16 @@ class SimulationDataModule(pl.LightningDataModule):
                 raise FileNotFoundError(
                     f"{path}: split file missing; generate it with `python -m ggns generate --config "
                     f"{self.hparams.dataset} --output {self.data_dir}` (or set data.generate_missing=true)")
-            trajs = read_trajectories(path, expected_config=self.config)
-            if split != "train" and self.max_eval_trajectories is not None:
-                trajs = trajs[: self.max_eval_trajectories]
-            if not trajs:
-                raise ValueError(f"{path}: no trajectories")
-            self._trajectories[split] = trajs
+            return self._keep(split, read_trajectories(path, expected_config=self.config), path)
         return self._trajectories[split]
+
+    def _keep(self, split: str, trajs: list[Trajectory], path: Path) -> list[Trajectory]:
+        if split != "train" and self.max_eval_trajectories is not None:
+            trajs = trajs[: self.max_eval_trajectories]
+        if not trajs:
+            raise ValueError(f"{path}: no trajectories")
+        self._trajectories[split] = trajs
+        return trajs
 
     @property
     def dim(self) -> int:

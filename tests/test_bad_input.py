@@ -192,3 +192,34 @@ def test_an_empty_or_far_away_point_cloud_rolls_out_as_no_points_at_that_step(ch
     # points with no mesh node within the radius send no message: the same prediction as no points
     torch.testing.assert_close(out["far"], out["empty"], rtol=0, atol=1e-6)
     assert not torch.allclose(out["empty"][3], out["as recorded"][3])  # step 2's points did matter
+
+
+# sweep and bench learning run fit (and test) as subprocesses: the subprocess's own error line reaches
+# the user as the command's one line, with the log that has the rest
+@pytest.mark.parametrize("bad", ["NaN positions", "truncated HDF5"])
+@pytest.mark.parametrize("entry", ["sweep", "bench learning"])
+def test_sweep_and_bench_learning_pass_on_their_fits_error_line(bad, entry, cli_data, tmp_path, capsys):
+    import yaml
+
+    data = tmp_path / "data"
+    preset = _bad_copy(cli_data, data, bad)
+    before = {p: p.read_bytes() for p in data.iterdir()}
+    args = ["--data.dataset", str(preset), "--data.generate_missing", "false", "--model.init_args.latent", "8",
+            "--model.init_args.blocks", "1", "--trainer.max_steps", "1", "--trainer.enable_progress_bar", "false"]
+    config = str(CONF_DIR / "plate" / "mgn.yaml")
+    if entry == "sweep":
+        spec = {"output": str(tmp_path / "out"), "seeds": [0], "parallel": 1, "args": args,
+                "models": {"mgn": {"config": config}}}
+    else:
+        spec = {"output": str(tmp_path / "out"), "minutes": 1, "val_every": 1, "seed": 0, "parallel": 1,
+                "base": {"config": config, "args": args}, "variants": {"mgn": []}}
+    path = tmp_path / "spec.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        run([*entry.split(), "--config", str(path)])
+    err = capsys.readouterr().err
+    last = err.strip().splitlines()[-1]
+    assert exit_info.value.code == 2 and "Traceback" not in err, err[-2000:]
+    assert last.startswith("error: fit of ") and BAD_FILES[bad][1] in last and "; see " in last, last
+    assert {p: p.read_bytes() for p in data.iterdir()} == before

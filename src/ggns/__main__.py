@@ -34,13 +34,18 @@ LIGHTNING_COMMANDS = ("fit", "validate", "test", "predict")  # LightningCLI (ggn
 # stderr and exit status 2, no traceback (GGNS_TRACEBACK=1 or a leading --traceback shows it).
 # ValueError covers DatasetError, CheckpointError, CheckpointMismatchError, UnknownKeyError and the
 # configs' range checks; SimulationError and RolloutError are the simulator's and the rollout's
-# numerical reports (they name the step and where).
+# numerical reports (they name the step and where); RunFailed, a sweep's or `bench learning`'s
+# subprocess that failed, carries that subprocess's own error line.
 def _user_errors() -> tuple[type[BaseException], ...]:
     from .evaluation.rollout import RolloutError
     from .sim.solver import SimulationError
 
     errors = (FileNotFoundError, FileExistsError, IsADirectoryError, PermissionError, ValueError, SimulationError,
               RolloutError)
+    if "ggns.experiments.sweep" in sys.modules:  # a sweep's fit or test that failed, with its own error line
+        from .experiments.sweep import RunFailed
+
+        errors += (RunFailed,)
     if "pytorch_lightning" in sys.modules:  # Lightning's own refusal of a configuration
         from pytorch_lightning.utilities.exceptions import MisconfigurationException
 

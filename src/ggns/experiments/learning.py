@@ -35,7 +35,7 @@ from omegaconf import OmegaConf
 from ..config import resolve_preset
 from ..reports import write_csv, write_json
 from .curves import CLOCK, COLUMNS, LATE_STEPS, RATIO_THRESHOLD, markdown_rows, plot_curves, read_scalars, variant_row
-from .sweep import Run
+from .sweep import Run, RunFailed
 
 FINISHED = "learning_finished.json"
 
@@ -148,7 +148,7 @@ def fit_variant(run: Run, threads: int | None = None, log=print) -> Run:
         result = subprocess.run(run.fit_command(), stdout=out, stderr=subprocess.STDOUT,
                                 env={**os.environ, **({"OMP_NUM_THREADS": str(threads)} if threads else {})})
     if result.returncode != 0:
-        raise RuntimeError(f"fit of variant {run.model} failed (exit {result.returncode}); see {out.name}")
+        raise RunFailed.of(f"fit of variant {run.model}", result.returncode, out.name)
     write_json(marker, {"args": list(run.args), "process_seconds": time.perf_counter() - start})
     return run
 

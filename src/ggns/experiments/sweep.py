@@ -234,6 +234,18 @@ def checkpoints_markdown(checkpoints: dict[str, dict]) -> str:
                           [(family, describe(info), info.get("note") or "") for family, info in checkpoints.items()]) + "\n"
 
 
+class RunFailed(RuntimeError):
+    """A fit or test that a sweep (or `bench learning`) ran as a subprocess ended with an error status;
+    the message carries the subprocess's own `error: ...` line when it wrote one, and its log file."""
+
+    @classmethod
+    def of(cls, what: str, status: int, log_path: str | Path) -> RunFailed:
+        lines = Path(log_path).read_text(errors="replace").splitlines() if Path(log_path).is_file() else []
+        reason = next((line for line in reversed(lines) if line.startswith("error: ")), None)
+        return cls(f"{what} failed (exit {status})" + (f": {reason.removeprefix('error: ')}" if reason else "")
+                   + f"; see {log_path}")
+
+
 def execute(run: Run, threads: int | None = None, log=print) -> Run:
     """fit (resuming a left-over last.ckpt) then the test parts, merged; a finished run is skipped,
     and so is the fit once a test part has finished (the fit ended before the tests began)."""
@@ -249,8 +261,8 @@ def execute(run: Run, threads: int | None = None, log=print) -> Run:
             log(f"{step} {run.model} seed {run.seed}")
             result = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, env=env)
             if result.returncode != 0:
-                raise RuntimeError(f"{step} of {run.model} seed {run.seed} failed (exit {result.returncode}); "
-                                   f"see {out.name}")
+                out.flush()
+                raise RunFailed.of(f"{step} of {run.model} seed {run.seed}", result.returncode, out.name)
 
         if not any(run.test_dir.glob("*/test_metrics.json")):
             call("fit", run.fit_command())

@@ -157,6 +157,25 @@ def test_non_finite_step_raises_naming_step_and_trajectory(batch):
         rollout(step_fn, batch, EveryK(1), CONN)
 
 
+def test_a_node_that_escapes_the_scene_stops_the_rollout_naming_it(batch):
+    """Finite but garbage: a free node pushed 1e3 x the start extent away at step 3 is reported
+    (step, node within its trajectory, distance) instead of returned."""
+    node = int(torch.nonzero(~batch.fixed & (batch.mesh_batch == 1))[0])
+    extent = float((batch.positions[0].amax(0) - batch.positions[0].amin(0)).norm())
+
+    def step_fn(graph, state):
+        state = 0 if state is None else state + 1
+        displacement = torch.zeros_like(graph["mesh"].pos)
+        if state == 3:
+            displacement[node, 1] = 1e3 * extent
+        return displacement, state
+
+    local = node - batch.node_offsets[1]
+    with pytest.raises(RolloutError, match=rf"step 3 .*mesh node {local} of trajectory 1 is .* from its start, more "
+                                           rf"than 100 x the start state's extent"):
+        rollout(step_fn, batch, EveryK(1), CONN)
+
+
 def test_state_is_carried_within_and_reset_between_rollouts(batch):
     seen = []
 

@@ -210,6 +210,28 @@ def bench_tradeoff(dataset: str = "plate_small", checkpoint: dict[str, str] | No
                     data_dir=data_dir, threads=threads, simulator=simulator)
 
 
+def bench_stability(dataset: str = "plate", checkpoint: dict[str, str] | None = None, steps: int = 1000,
+                    beyond: Sequence[float] = (-0.95, 0.499), schedules: Sequence[str] = ("every:1", "never"),
+                    dtypes: Sequence[str] = ("float32", "float64"), stride: int = 10,
+                    output_dir: str = "lightning_logs/stability") -> list[dict]:
+    """Long rollouts at and beyond the training materials, smallest and largest colliders, float32 and 64.
+
+    Args:
+        dataset: data preset whose scene is simulated (plate: the push, then held)
+        checkpoint: a simulator to roll out, as name=path or name=pretrained name (default: the shipped ones of the scene)
+        steps: recorded states of each trajectory (the plate preset's 50, the tissue's 100)
+        beyond: Poisson's ratios beyond the training ones, also rolled out
+        schedules: point-cloud schedules (with point clouds only for models that use them)
+        dtypes: float32 and/or float64 (the drift between them is reported)
+        stride: steps between CSV rows
+        output_dir: where stability.csv, .md and .png go
+    """
+    from .bench.stability import stability
+
+    return stability(dataset, dict(checkpoint) if checkpoint else None, steps=steps, beyond=tuple(beyond),
+                     schedules=tuple(schedules), dtypes=tuple(dtypes), stride=stride, output_dir=output_dir)
+
+
 def bench_learning(*overrides: str, config: str = "plate_ggns", minutes: float | None = None,
                    parallel: int | None = None, variant: Sequence[str] | None = None, output_dir: str | None = None,
                    report_only: bool = False) -> Path:
@@ -478,6 +500,7 @@ COMMANDS = {
     "import-reference": import_reference,
     "geometry": geometry,
     "bench": {"sim": bench_sim, "solvers": bench_solvers, "models": bench_models, "tradeoff": bench_tradeoff,
+              "stability": bench_stability,
               "learning": bench_learning},
     "export": export,
     "rollout": rollout,

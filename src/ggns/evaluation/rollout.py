@@ -34,7 +34,8 @@ def rollout(step_fn: StepFn, batch: TrajectoryBatch, schedule: Schedule, connect
     """Predict states start+1 .. start+steps from the true state at `start` (or start_positions
     [sumN, d]); prediction step t uses the point clouds of state t iff schedule.uses_points(t).
     steps defaults to T-1-start. Returns (positions [steps+1, sumN, d], final state).
-    Raises RolloutError naming the step and trajectories that went non-finite."""
+    Raises RolloutError naming the step and trajectories that went non-finite, or the first node
+    that escaped (farther than ESCAPE_FACTOR x the start state's extent from its start)."""
     last = batch.num_steps - 1
     steps = last - start if steps is None else steps
     if start < 0 or steps < 0 or start + steps > last:
@@ -42,12 +43,14 @@ def rollout(step_fn: StepFn, batch: TrajectoryBatch, schedule: Schedule, connect
     pos = batch.positions[start] if start_positions is None else start_positions.to(batch.positions)
     fixed = batch.fixed[:, None]
     out = [pos]
+    origin, extent = pos, float((pos.amax(0) - pos.amin(0)).norm()) if len(pos) else 0.0
     with torch.no_grad():
         for t in range(start, start + steps):
             graph = state_graph(batch, t, pos, schedule.uses_points(t), connectivity, with_material)
             displacement, state = step_fn(graph, state)
             pos = torch.where(fixed, batch.positions[t + 1], pos + displacement)
             _check_finite(pos, batch, t)
+            _check_bounded(pos, origin, extent, batch, t)
             out.append(pos)
     return torch.stack(out), state
 
@@ -88,6 +91,27 @@ def m_plus_10_rollouts(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Co
             nxt, state = rollout(step_fn, batch, EveryK(1), connectivity, with_material, chain[m], m, 1, state)
             chain.append(nxt[1])
     return preds
+
+
+# A node farther than this many times the start state's extent from where it started has left any
+# scene (they are normalized to [-1, 1]^d): the rollout is reported as diverged rather than continued
+# as garbage (checked in `rollout`, which runs long horizons; not in the one-step predictions).
+ESCAPE_FACTOR = 100.0
+
+
+def _check_bounded(pos: Tensor, start: Tensor, extent: float, batch: TrajectoryBatch, t: int) -> None:
+    """Raise RolloutError if a node of pos [sumN, d] (the prediction of state t+1) lies farther than
+    ESCAPE_FACTOR x `extent` (the start state's bounding-box diagonal) from its start position `start`."""
+    distance = (pos - start).norm(dim=1)
+    bad = distance > ESCAPE_FACTOR * extent
+    if bad.any():
+        first = int(torch.nonzero(bad)[0])
+        trajectory = int(batch.mesh_batch[first])
+        raise RolloutError(
+            f"rollout diverged at prediction step {t} (state {t} -> {t + 1}): mesh node "
+            f"{first - batch.node_offsets[trajectory]} of trajectory {trajectory} is {float(distance[first]):.4g} "
+            f"from its start, more than {ESCAPE_FACTOR:g} x the start state's extent ({extent:.4g}); "
+            f"{int(bad.sum())} node(s) that far")
 
 
 def _check_finite(pos: Tensor, batch: TrajectoryBatch, t: int) -> None:

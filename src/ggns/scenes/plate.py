@@ -88,17 +88,20 @@ def sample_spec(scene: dict, shape_id: int, poissons_ratio: float, rng: np.rando
     """Collider radius ~ triangular(radius_fraction) x top edge length; start x ~ U(top corners)."""
     _, _, tl, tr = trapezoid(scene, shape_id)
     lo, mode, hi = scene["collider"]["radius_fraction"]
-    radius = rng.triangular(lo, mode, hi) * (tr - tl)
+    radius = (lo if lo == hi else rng.triangular(lo, mode, hi)) * (tr - tl)  # numpy refuses lo == hi
     return PlateSpec(shape_id, float(poissons_ratio), float(radius), float(rng.uniform(tl, tr)))
 
 
 def collider_path(scene: dict, spec: PlateSpec) -> tuple[np.ndarray, np.ndarray]:
-    """Collider vertices per recorded step [T, K, 2] (constant downward velocity) and segments [K, 2]."""
+    """Collider vertices per recorded step [T, K, 2] and segments [K, 2]: `collider.travel` down at a
+    constant velocity over `collider.push_steps` steps (default: all T - 1), then held (a long
+    rollout of the same push: issue 23's stability study)."""
     T, col = int(scene["num_steps"]), scene["collider"]
+    push = int(col.get("push_steps") or T - 1)
     top_y = scene["bottom_y"] + scene["height"]
     centre_y0 = top_y + col["start_gap"] + spec.collider_radius
     vertices, segments = circle(spec.collider_radius, (spec.collider_start_x, centre_y0), int(col["vertices"]))
-    drop = col["travel"] * np.arange(T) / max(T - 1, 1)
+    drop = col["travel"] * np.minimum(np.arange(T), push) / max(push, 1)
     path = vertices[None] - np.stack([np.zeros_like(drop), drop], axis=1)[:, None, :]
     return path, segments
 
@@ -114,6 +117,9 @@ def check_config(config: dict) -> None:
     SolverConfig(dt=scene["frame_dt"] / int(scene["substeps"]), **config["solver"])
     if int(scene["num_steps"]) < 2:
         raise ValueError(f"scene.num_steps must be >= 2, got {scene['num_steps']}")
+    push = scene["collider"].get("push_steps")
+    if push is not None and not 1 <= int(push) <= int(scene["num_steps"]) - 1:
+        raise ValueError(f"collider.push_steps must be in 1..num_steps - 1 = {int(scene['num_steps']) - 1}, got {push}")
     lo, mode, hi = scene["collider"]["radius_fraction"]
     if not 0 < lo <= mode <= hi:
         raise ValueError(f"collider.radius_fraction must be 0 < min <= mode <= max, got {[lo, mode, hi]}")

@@ -268,6 +268,12 @@ def test_normalizer_floor_inverse_and_identity_before_update():
     norm.update(x)
     assert norm.std[1] == 1e-8 and (norm(x)[:, 1] == 0).all()
     torch.testing.assert_close(norm.inverse(norm(x)), x)
+    # a constant feature is no input: another value of it (a collider that stops) still maps to 0,
+    # where dividing by the floor gave 3e8; the varying column is standardized as before
+    other = x.clone()
+    other[:, 1] = 0.0
+    assert (norm(other)[:, 1] == 0).all() and torch.equal(norm(other)[:, 0], norm(x)[:, 0])
+    assert norm.varies().tolist() == [True, False]
 
 
 def test_normalizer_state_dict_round_trip_and_freeze():

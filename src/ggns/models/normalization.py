@@ -15,9 +15,9 @@ from torch_geometric.nn.module_dict import ModuleDict
 
 NodeOrEdgeType = Union[str, tuple[str, str, str]]
 
-# Well above the float32 resolution of task-space quantities (~1e-7 in [-1, 1]): a feature that
-# is constant in the training data (the plate's collider velocity) is then standardized to ~0
-# instead of turning float32 rounding noise into O(1) inputs.
+# Well above the float32 resolution of task-space quantities (~1e-7 in [-1, 1]): a feature whose
+# std in the training data is below it (float32 rounding noise around a constant, as the plate's
+# collider velocity) counts as constant and is not an input (`Normalizer.varies`).
 DEFAULT_STD_FLOOR = 1e-5
 
 
@@ -44,10 +44,13 @@ class TypeModuleDict(ModuleDict):
 class Normalizer(nn.Module):
     """Standardizes a feature vector of width `size`: forward(x) = (x - mean) / std.
 
-    `std` is the population std floored at `std_floor`: a feature that is constant in the
-    training data (a one-hot column, a fixed-node flag, a collider at rest) has std 0 and
-    would otherwise divide by zero; with the floor it maps to 0. Before any `update` the
-    normalizer is the identity (mean 0, std 1), e.g. for a type absent from training data.
+    `std` is the population std floored at `std_floor`. A feature that did not vary in the
+    training data (a one-hot column, a fixed-node flag, the plate's collider velocity, which is the
+    same in every training trajectory) maps to 0 whatever its value: its value carries nothing the
+    model could have learned, and standardized by the floor a change of it became an input of
+    order 1e3-1e5 (a plate collider that stops after its push made every shipped plate simulator
+    explode within one step; docs/results.md, "Stability at the extremes"). Before any `update`
+    the normalizer is the identity (mean 0, std 1), e.g. for a type absent from training data.
     """
 
     def __init__(self, size: int, std_floor: float = DEFAULT_STD_FLOOR):
@@ -114,11 +117,17 @@ class Normalizer(nn.Module):
         self.mean.copy_(mean)
         self.std.copy_((m2 / max(count, 1.0)).sqrt().clamp(min=self.std_floor) if count else torch.ones_like(self.std))
 
+    def varies(self) -> Tensor:
+        """[F] bool: the features whose std over the statistics exceeds `std_floor` (all of them before
+        any statistics)."""
+        return (self.acc_m2 > self.std_floor ** 2 * self.count) | (self.count == 0)
+
     def forward(self, x: Tensor) -> Tensor:
-        """[..., F] -> [..., F] standardized."""
+        """[..., F] -> [..., F] standardized; a feature that did not vary in the statistics maps to 0
+        whatever its value (class docstring)."""
         if x.shape[-1] != self.size:
             raise ValueError(f"Normalizer of width {self.size} got shape {tuple(x.shape)}")
-        return (x - self.mean) / self.std
+        return (x - self.mean) / self.std * self.varies().to(x.dtype)
 
     def inverse(self, y: Tensor) -> Tensor:
         """[..., F] standardized -> [..., F] in data units."""

@@ -117,7 +117,7 @@ def _rollout(model, trajectory, schedule, dtype) -> tuple[np.ndarray, str | None
         return positions.double().numpy(), None
     except RolloutError as error:
         # the states before the divergence: roll out again up to the step before
-        step = int(str(error).split("prediction step ")[1].split(" ")[0])
+        step = error.step
         positions, _ = rollout(model.step, batch, schedule, model.connectivity, model.with_material, steps=step)
         return positions.double().numpy(), f"state {step + 1}: {error}"
 

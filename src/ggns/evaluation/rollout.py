@@ -25,7 +25,12 @@ StepFn = Callable[[HeteroData, Any], tuple[Tensor, Any]]
 
 
 class RolloutError(RuntimeError):
-    """A rollout produced non-finite positions."""
+    """A rollout produced non-finite positions, or a node escaped the scene; `step` is the prediction
+    step (state step -> step + 1) where it happened."""
+
+    def __init__(self, message: str, step: int | None = None):
+        super().__init__(message)
+        self.step = step
 
 
 def rollout(step_fn: StepFn, batch: TrajectoryBatch, schedule: Schedule, connectivity: Connectivity,
@@ -111,7 +116,7 @@ def _check_bounded(pos: Tensor, start: Tensor, extent: float, batch: TrajectoryB
             f"rollout diverged at prediction step {t} (state {t} -> {t + 1}): mesh node "
             f"{first - batch.node_offsets[trajectory]} of trajectory {trajectory} is {float(distance[first]):.4g} "
             f"from its start, more than {ESCAPE_FACTOR:g} x the start state's extent ({extent:.4g}); "
-            f"{int(bad.sum())} node(s) that far")
+            f"{int(bad.sum())} node(s) that far", step=t)
 
 
 def _check_finite(pos: Tensor, batch: TrajectoryBatch, t: int) -> None:
@@ -126,5 +131,4 @@ def _check_finite(pos: Tensor, batch: TrajectoryBatch, t: int) -> None:
         raise RolloutError(
             f"rollout diverged at prediction step {t} (state {t} -> {t + 1}): non-finite positions "
             f"in trajectory index(es) {trajectories} of the batch; the first: mesh node {node} of trajectory "
-            f"{trajectory}, predicted position {pos[first].tolist()}"
-        )
+            f"{trajectory}, predicted position {pos[first].tolist()}", step=t)

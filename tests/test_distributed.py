@@ -28,15 +28,17 @@ STEPS = 8  # 2 epochs of 4 batches
 
 
 def _fit(data, logs, version: str, processes: int, batch_size: int,
-         strategy: str = "ddp_find_unused_parameters_true") -> subprocess.CompletedProcess:
-    command = [sys.executable, "-m", "ggns", "fit", "--config", str(CONF_DIR / "plate" / "mgn.yaml"),
+         strategy: str = "ddp_find_unused_parameters_true", validate: bool = False,
+         command: str = "fit") -> subprocess.CompletedProcess:
+    command = [sys.executable, "-m", "ggns", command, "--config", str(CONF_DIR / "plate" / "mgn.yaml"),
                "--data.dataset", str(data / TINY12), "--data.data_dir", str(data),
                "--data.batch_size", str(batch_size), "--data.generate_missing", "false", "--seed_everything", "0",
                "--model.init_args.latent", "16", "--model.init_args.blocks", "2", "--model.init_args.noise_std", "0",
                "--model.init_args.statistics_batches", "4",
                "--trainer.logger.init_args.save_dir", str(logs), "--trainer.logger.init_args.version", version,
                "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false",
-               "--trainer.max_epochs", "2", "--trainer.limit_train_batches", "4", "--trainer.limit_val_batches", "0",
+               "--trainer.max_epochs", "2", "--trainer.limit_train_batches", "4",
+               "--trainer.limit_val_batches", "1" if validate else "0", "--trainer.check_val_every_n_epoch", "1",
                "--trainer.log_every_n_steps", "1", "--trainer.accelerator", "cpu",
                "--trainer.devices", str(processes), "--trainer.strategy", strategy]
     # SIGKILL on timeout: a rank stuck in a collective ignores the SIGTERM that subprocess.run would send
@@ -50,10 +52,27 @@ def _fit(data, logs, version: str, processes: int, batch_size: int,
     return subprocess.CompletedProcess(command, proc.returncode, out, err)
 
 
+def _scalars(run: Path, prefix: str) -> dict[str, dict[int, float]]:
+    """{tag: {step: value}} of a run's TensorBoard scalars whose tag starts with `prefix`."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out: dict[str, dict[int, float]] = {}
+    for path in sorted(run.glob("events.out.tfevents.*"), key=lambda p: p.stat().st_mtime):
+        acc = EventAccumulator(str(path), size_guidance={"scalars": 0})
+        acc.Reload()
+        for tag in acc.Tags()["scalars"]:
+            if tag.startswith(prefix):
+                out.setdefault(tag, {}).update({e.step: e.value for e in acc.Scalars(tag)})
+    return out
+
+
 def test_two_ddp_processes_train_as_one_with_twice_the_batch(cli_data, tmp_path):
+    """... and validate as one: the rollout callback's metrics (each process rolls out one of the 2
+    validation trajectories, sums and counts added across processes) and val/loss (synced) equal one
+    process's, so every process selects the same best-* checkpoints."""
     for version, processes, batch_size in (("one", 1, 8), ("two", 2, 4)):
         done = _fit(cli_data, tmp_path, version, processes=processes, batch_size=batch_size,
-                    strategy="ddp_find_unused_parameters_true" if processes > 1 else "auto")
+                    strategy="ddp_find_unused_parameters_true" if processes > 1 else "auto", validate=True)
         assert done.returncode == 0, done.stderr[-3000:]
     one, two = tmp_path / "mgn" / "one", tmp_path / "mgn" / "two"
     first, second = (torch.load(run / "checkpoints" / "last.ckpt", weights_only=True) for run in (one, two))
@@ -66,6 +85,23 @@ def test_two_ddp_processes_train_as_one_with_twice_the_batch(cli_data, tmp_path)
     assert sorted(losses) == sorted(ddp) and len(losses) == STEPS
     for step in losses:
         assert ddp[step] == pytest.approx(losses[step], rel=1e-4), step
+    val, val_ddp = _scalars(one, "val/"), _scalars(two, "val/")
+    assert {"val/loss", "val/rollout_mse_never", "val/m10_mse", "val/one_step_ratio"} <= set(val)
+    assert sorted(val) == sorted(val_ddp)
+    for tag, values in val.items():
+        assert sorted(values) == sorted(val_ddp[tag]) and len(values) == 2, tag  # after each of the 2 epochs
+        if tag != "val/evaluation_seconds":
+            for step, value in values.items():
+                assert val_ddp[tag][step] == pytest.approx(value, rel=1e-4), (tag, step)
+    assert sorted(p.name for p in (one / "checkpoints").iterdir()) == sorted(p.name for p in (two / "checkpoints").iterdir())
+
+
+def test_test_and_predict_refuse_more_than_one_process(cli_data, tmp_path):
+    """Lightning's distributed sampler would hand each process part of the split: the metrics and
+    predictions written would be one process's part. Refused on every rank, nothing written."""
+    done = _fit(cli_data, tmp_path, "test", processes=2, batch_size=4, command="test")
+    assert done.returncode == 2 and "test runs in one process" in done.stderr, done.stderr[-2000:]
+    assert not list((tmp_path / "mgn" / "test").glob("test_metrics*"))
 
 
 def test_plain_ddp_is_refused_before_it_can_hang(cli_data, tmp_path):

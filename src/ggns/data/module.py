@@ -228,8 +228,11 @@ class SimulationDataModule(pl.LightningDataModule):
     def predict_dataloader(self) -> DataLoader:
         return self.test_dataloader()
 
-    def eval_batch(self, split: str = "val", count: int | None = None, device=None) -> TrajectoryBatch:
-        """The first `count` trajectories of a split as one batch (rollout callbacks)."""
+    def eval_batch(self, split: str = "val", count: int | None = None, device=None, rank: int = 0,
+                   world: int = 1) -> TrajectoryBatch | None:
+        """The first `count` trajectories of a split as one batch (rollout callbacks); of those, process
+        `rank` of `world` takes every `world`-th from its rank (None when that leaves it none)."""
         trajs = self.trajectories(split)
-        return TrajectoryBatch.from_trajectories(trajs[:count] if count else trajs, device=device)
+        mine = (trajs[:count] if count else trajs)[rank::world]
+        return TrajectoryBatch.from_trajectories(mine, device=device) if mine else None
 

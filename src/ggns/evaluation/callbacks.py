@@ -15,8 +15,10 @@ from pathlib import Path
 from typing import Sequence
 
 import pytorch_lightning as pl
+import torch
 from pytorch_lightning.callbacks import BasePredictionWriter
 from pytorch_lightning.loggers import TensorBoardLogger
+from torch import Tensor
 
 from ..batch import TrajectoryBatch
 from ..checkpoints import sha256
@@ -31,12 +33,30 @@ from .selection import CHECKPOINT_KEY, M10, checkpoint_info, describe, val_metri
 
 
 def _eval_batch(trainer: pl.Trainer, split: str, count: int | None, cache: dict) -> TrajectoryBatch:
+    """The first `count` trajectories of `split`, this process's share of them under DDP (every
+    world-size-th, from the rank)."""
     if "batch" not in cache:
         datamodule = trainer.datamodule
         if datamodule is None or not hasattr(datamodule, "eval_batch"):
             raise RuntimeError("rollout callbacks need a SimulationDataModule (trainer.datamodule.eval_batch)")
-        cache["batch"] = datamodule.eval_batch(split, count)
+        available = len(datamodule.trajectories(split))
+        if min(count or available, available) < trainer.world_size:
+            raise ValueError(f"rollout validation shares the {split} trajectories among the {trainer.world_size} "
+                             f"processes, but has {min(count or available, available)}: use at least one per process")
+        cache["batch"] = datamodule.eval_batch(split, count, rank=trainer.global_rank, world=trainer.world_size)
     return cache["batch"].to(trainer.lightning_module.device)
+
+
+def _mean_over_processes(trainer: pl.Trainer, values: dict[str, Tensor]) -> dict[str, float]:
+    """{name: mean of every element of values[name] over all processes} (one process: the plain mean).
+    Sums and counts in float64, summed across processes, then divided: each trajectory counts once."""
+    names = sorted(values)
+    totals = torch.stack([torch.stack([values[n].double().sum(), torch.tensor(values[n].numel(), dtype=torch.float64,
+                                                                              device=values[n].device)])
+                          for n in names])
+    if trainer.world_size > 1:
+        totals = trainer.strategy.reduce(totals, reduce_op="sum")
+    return {n: (t[0] / t[1]).item() for n, t in zip(names, totals)}
 
 
 class RolloutEvaluation(pl.Callback):
@@ -53,9 +73,12 @@ class RolloutEvaluation(pl.Callback):
         val/m10_mse                   the m+10 MSE over every `m_plus_10_stride`-th start m (if m_plus_10)
         val/rollout_mse               alias of `primary` (a family above; default k1, or never without
                                       point clouds), kept for older configs
-        val/evaluation_seconds        wall-clock time of this evaluation
+        val/evaluation_seconds        wall-clock time of this evaluation (of this process, under DDP)
 
-    m+10 needs trajectories of more than 10 states; shorter ones raise at the start of `fit`."""
+    m+10 needs trajectories of more than 10 states; shorter ones raise at the start of `fit`. Under DDP
+    each process rolls out every world-size-th of the trajectories and the sums and counts of the
+    per-trajectory metrics are added across processes: the same means as one process, in a
+    world-size-th of the time, and every process logs (and selects checkpoints on) the same values."""
 
     def __init__(self, num_trajectories: int | None = 27, schedules: Sequence[str] = (), m_plus_10: bool = True,
                  m_plus_10_stride: int = 10, primary: str | None = None, split: str = "val"):
@@ -96,16 +119,18 @@ class RolloutEvaluation(pl.Callback):
         batch = _eval_batch(trainer, self.split, self.num_trajectories, self._cache)
         metrics = pl_module.evaluate(batch, self.schedules(pl_module), m_plus_10=self.m_plus_10, iou=False,
                                      m_plus_10_stride=self.m_plus_10_stride)
+        metrics = {f"val/{name}": v for name, v in metrics.items()}
         if "zero_motion" not in self._cache:
-            self._cache["zero_motion"] = zero_motion_one_step_mse(batch).mean().item()
-        values = {f"val/{name}": v.mean().item() for name, v in metrics.items()}
+            metrics["val/one_step_mse_zero_motion"] = zero_motion_one_step_mse(batch)
+        values = _mean_over_processes(trainer, metrics)  # under DDP each process rolled out its share
+        self._cache.setdefault("zero_motion", values.get("val/one_step_mse_zero_motion"))
         values["val/one_step_mse_zero_motion"] = self._cache["zero_motion"]
         zero = values["val/one_step_mse_zero_motion"]
         # nothing moves in these trajectories (e.g. a gripper that has not reached the body yet): no ratio
         values["val/one_step_ratio"] = values["val/one_step_mse"] / zero if zero > 0 else math.nan
         values["val/rollout_mse"] = values[val_metric(self.primary_family(pl_module))]
         values["val/evaluation_seconds"] = time.perf_counter() - start
-        for name, value in values.items():
+        for name, value in values.items():  # the same value in every process
             pl_module.log(name, value, batch_size=batch.num_graphs)
 
 

@@ -222,7 +222,10 @@ class GraphSimulator(pl.LightningModule):
         return loss
 
     def validation_step(self, batch: TrajectoryBatch, batch_idx: int) -> None:
-        self.log("val/loss", self.window_loss(batch, train=False), batch_size=batch.num_graphs, prog_bar=True)
+        # under DDP each rank validates its share of the windows: the logged loss is the ranks' mean, so that
+        # every rank's checkpoint callbacks see the same value
+        self.log("val/loss", self.window_loss(batch, train=False), batch_size=batch.num_graphs, prog_bar=True,
+                 sync_dist=self._world_size() > 1)
 
     def configure_optimizers(self):
         """Adam with the `lr_schedule` stepped after every optimizer step; its lr is logged as `train/lr`
@@ -260,13 +263,19 @@ class GraphSimulator(pl.LightningModule):
     def setup(self, stage: str) -> None:
         """Refuse DDP that would hang: a batch without contact (or without a point cloud) leaves the edge
         MLPs of that edge type without a gradient, and DDP without find_unused_parameters then waits
-        forever for it (seen on the plate)."""
+        forever for it (seen on the plate). Refuse test and predict in more than one process."""
         strategy = self.trainer.strategy if self._trainer is not None else None
         if stage == "fit" and isinstance(strategy, DDPStrategy) and \
                 not getattr(strategy, "_ddp_kwargs", {}).get("find_unused_parameters", False):
             raise ValueError("DDP needs find_unused_parameters: a batch without contact or point clouds leaves the "
                              "edge MLPs of that edge type unused, and plain DDP waits for their gradients forever; "
                              "use --trainer.strategy ddp_find_unused_parameters_true")
+        stage = getattr(stage, "value", stage)  # Lightning passes a TrainerFn (a str enum)
+        if stage in ("test", "predict") and self._world_size() > 1:
+            # Lightning's distributed sampler would give each process part of the split (padded with repeats),
+            # and the metrics or predictions written would be one process's part: refused, not half-written
+            raise ValueError(f"{stage} runs in one process (it writes metrics and predictions of the whole split); "
+                             f"use --trainer.devices 1 (this run has {self._world_size()} processes)")
 
     def on_fit_start(self) -> None:
         if self.target_normalizer.frozen:  # resumed or fine-tuned: statistics come from the checkpoint

@@ -276,6 +276,26 @@ def test_normalizer_floor_inverse_and_identity_before_update():
     assert norm.varies().tolist() == [True, False]
 
 
+def test_normalizer_mask_of_constant_features_follows_every_change_of_the_statistics():
+    """forward keeps varies() between calls: loading, merging and casting must drop it."""
+    varying, constant = torch.randn(6, 2), torch.ones(6, 2)
+    x = torch.full((1, 2), 2.0)
+    stale = Normalizer(2)
+    stale.update(constant)
+    assert (stale(x) == 0).all()  # both constant: the mask [0, 0] is now kept
+    source = Normalizer(2)
+    source.update(varying)
+    stale.load_state_dict(source.state_dict())
+    assert torch.equal(stale(x), source(x)) and (stale(x) != 0).all()
+    merged = Normalizer(2)
+    merged.update(constant)
+    assert (merged(x) == 0).all()
+    merged.merge(torch.tensor([6, 6]), torch.stack([varying.double().mean(0), torch.ones(2, dtype=torch.float64)]),
+                 torch.stack([(varying.double() - varying.double().mean(0)).square().sum(0), torch.zeros(2).double()]))
+    assert (merged(x) != 0).all()
+    assert source.double()(x.double()).dtype == torch.float64
+
+
 def test_normalizer_state_dict_round_trip_and_freeze():
     chunks = torch.randn(10, 2), torch.randn(5, 2)
     norm = Normalizer(2)

@@ -118,7 +118,7 @@ def _fit_config(directory: Path) -> Path:
     return path
 
 
-def _fit_command(data, logs, version: str, resume: Path | None = None) -> list[str]:
+def _fit_command(data, logs, version: str, resume: Path | None = None, extra: tuple[str, ...] = ()) -> list[str]:
     from conftest import TINY12
 
     return [sys.executable, "-m", "ggns", "fit", "--config", str(_fit_config(logs)),
@@ -129,12 +129,13 @@ def _fit_command(data, logs, version: str, resume: Path | None = None) -> list[s
             "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false",
             "--trainer.max_epochs", "3", "--trainer.log_every_n_steps", "1",
             "--trainer.check_val_every_n_epoch", "1", "--trainer.limit_val_batches", "1",
-            "--trainer.callbacks+=kill_points.KillAt", *(["--ckpt_path", str(resume)] if resume is not None else [])]
+            "--trainer.callbacks+=kill_points.KillAt", *extra,
+            *(["--ckpt_path", str(resume)] if resume is not None else [])]
 
 
-def _fit(command: list[str], kill: tuple[str, int] | None = None) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")]),
-           "OMP_NUM_THREADS": "1"}
+def _fit(command: list[str], kill: tuple[str, int] | None = None, env: dict | None = None) -> subprocess.CompletedProcess:
+    env = {**os.environ, **(env or {}),
+           "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")]), "OMP_NUM_THREADS": "1"}
     env.pop("GGNS_KILL_AT", None)
     if kill is not None:
         env["GGNS_KILL_AT"] = f"{kill[0]}:{kill[1]}"
@@ -190,6 +191,47 @@ def test_a_fit_killed_with_sigkill_resumes_to_the_same_weights_and_losses(cli_da
     assert sorted(again) == sorted(losses) and len(losses) == FIT_STEPS
     for step in losses:
         assert again[step] == pytest.approx(losses[step], rel=1e-6), step
+
+
+def test_a_fit_stopped_by_a_slurm_time_limit_requeues_and_resumes_from_the_hpc_checkpoint(cli_data, tmp_path,
+                                                                                         uninterrupted_fit):
+    """SLURM's environment (one task) and a stand-in `scontrol` on the PATH (there is no SLURM here: it
+    records its arguments): SIGUSR1 at a seeded mid-epoch step, then SIGKILL (kill_points.REQUEUE).
+    Lightning's handler saved hpc_ckpt_1.ckpt in --trainer.default_root_dir and asked to requeue this
+    job; the requeued job, the same command without --ckpt_path, resumes from it (Lightning loads it
+    on SLURM) and ends with the uninterrupted fit's weights and losses (but one, below): our generator
+    states and data order ride in every checkpoint Lightning writes, the hpc one too."""
+    from kill_points import REQUEUE
+
+    weights, losses = uninterrupted_fit
+    bin_dir, root = tmp_path / "bin", tmp_path / "root"
+    bin_dir.mkdir()
+    scontrol = bin_dir / "scontrol"
+    scontrol.write_text(f'#!/bin/sh\necho "$@" >> {tmp_path / "scontrol.calls"}\n')
+    scontrol.chmod(0o755)
+    slurm = {"SLURM_JOB_ID": "4242", "SLURM_JOB_NAME": "ggns-fit", "SLURM_NTASKS": "1", "SLURM_NTASKS_PER_NODE": "1",
+             "SLURM_NNODES": "1", "SLURM_PROCID": "0", "SLURM_LOCALID": "0", "SLURM_NODEID": "0",
+             "SLURM_NODELIST": "localhost", "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
+    step = random.Random(2310).randrange(1, FIT_STEPS - 1)
+    command = _fit_command(cli_data, tmp_path, "run", extra=("--trainer.default_root_dir", str(root)))
+    killed = _fit(command, kill=(REQUEUE, step), env=slurm)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
+    assert (tmp_path / "scontrol.calls").read_text().split() == ["requeue", "4242"]
+    hpc = torch.load(root / "hpc_ckpt_1.ckpt", weights_only=True)
+    assert hpc["global_step"] == step and "ggns_rng_states" in hpc
+    rerun = _fit(command, env=slurm)
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    assert "hpc_ckpt_1.ckpt" in rerun.stdout + rerun.stderr  # Lightning says what it restored
+    final = torch.load(tmp_path / "ggns" / "run" / "checkpoints" / "last.ckpt", weights_only=True)
+    assert final["global_step"] == FIT_STEPS
+    for name, value in weights.items():
+        torch.testing.assert_close(final["state_dict"][name], value, rtol=1e-6, atol=1e-9, msg=name)
+    again = _losses(tmp_path / "ggns" / "run")
+    # the loss of the batch the signal ended was computed but not yet handed to the logger (Lightning logs
+    # after the batch-end callbacks), and the hpc checkpoint is after that batch: that one point is missing
+    assert set(losses) - set(again) == {step - 1} and set(again) <= set(losses)
+    for s in again:
+        assert again[s] == pytest.approx(losses[s], rel=1e-6), s
 
 
 # ---- sharded generation (a SLURM array): shards made apart, merged, equal to one machine's split ---------------

@@ -6,9 +6,11 @@
 # merged across all of them, and the logged loss is their mean: N processes with batches of B train
 # as one with batches of N x B (tests/test_distributed.py, 2 CPU processes). find_unused_parameters is
 # needed: a batch without contact leaves an edge MLP without a gradient (plain ddp is refused).
-# On SIGUSR1 (90 s before the time limit) Lightning saves an hpc checkpoint and requeues the job, which
-# loads it. The data order and random draws resume with any checkpoint a fit wrote (tested for
-# `fit --ckpt_path` in tests/test_faults.py); Lightning's SLURM requeue itself is not tested here (no SLURM).
+# On SIGUSR1 (90 s before the time limit) Lightning saves hpc_ckpt_<n>.ckpt in the trainer's
+# default_root_dir and requeues the job (`scontrol requeue`); the requeued job keeps its job id, finds
+# the checkpoint in the same folder (one per job id, so two jobs from one folder never share one) and
+# resumes with the same data order and random draws (tests/test_faults.py plays this on one CPU process
+# with SLURM's environment and a stand-in scontrol; not run on a real cluster here).
 #SBATCH --job-name=ggns-fit
 #SBATCH --nodes=2
 #SBATCH --ntasks-per-node=4
@@ -23,4 +25,4 @@ shift
 cd "${SLURM_SUBMIT_DIR:-$(dirname "$0")/../..}"
 srun .venv/bin/python -m ggns fit --config "$config" \
   --trainer.accelerator gpu --trainer.devices "${SLURM_NTASKS_PER_NODE:-1}" --trainer.num_nodes "${SLURM_JOB_NUM_NODES:-1}" \
-  --trainer.strategy ddp_find_unused_parameters_true "$@"
+  --trainer.strategy ddp_find_unused_parameters_true --trainer.default_root_dir "lightning_logs/slurm/${SLURM_JOB_ID:-local}" "$@"

@@ -149,3 +149,41 @@ def test_bad_visibility_inputs_name_the_problem(two_tets):
         error_shares(pred, true, rest, TWO_TETS, fixed, points=points[:-1], point_offsets=offsets)
     with pytest.raises(ValueError, match="must be positive"):
         error_shares(pred, true, rest, TWO_TETS, fixed, points=points, point_offsets=offsets, radius=0.0)
+
+
+# ---- 2D (issue 24): the outline against the interior, on a 2x2-cell square of 8 triangles ----------------------
+SQUARE_REST = np.array([[x, y] for y in (0.0, 0.5, 1.0) for x in (0.0, 0.5, 1.0)])  # node 3 * row + column
+SQUARE = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [3, 4, 7], [3, 7, 6], [4, 5, 8], [4, 8, 7]])
+CENTRE, BOTTOM_MIDDLE, CORNER = 4, 1, 0
+
+
+def test_2d_vertex_normals_are_the_outline_normals():
+    normals = vertex_normals(SQUARE_REST, boundary_facets(SQUARE, SQUARE_REST))
+    np.testing.assert_allclose(normals[BOTTOM_MIDDLE], [0, -1], atol=1e-12)  # outward: below the square
+    np.testing.assert_allclose(normals[CORNER], [-np.sqrt(0.5), -np.sqrt(0.5)], atol=1e-12)
+    np.testing.assert_array_equal(normals[CENTRE], 0)  # on no boundary segment
+
+
+@pytest.mark.parametrize("node, offset, part", [(BOTTOM_MIDDLE, [0.0, 0.004], "surface_normal"),
+                                                (BOTTOM_MIDDLE, [-0.003, 0.0], "surface_tangential"),
+                                                (CENTRE, [0.002, -0.001], "interior")])
+def test_2d_each_error_lands_in_its_part(node, offset, part):
+    true = np.stack([SQUARE_REST, SQUARE_REST * 1.1, SQUARE_REST + 0.02])  # the error is against these
+    pred = true.copy()
+    pred[1:, node] += offset
+    fixed = np.zeros(len(SQUARE_REST), dtype=bool)
+    fixed[CORNER] = True
+    shares = error_shares(pred, true, SQUARE_REST, SQUARE, fixed)
+    assert shares[f"{part}_share"] == pytest.approx(1.0)
+    assert shares[part] == pytest.approx(2 * float(np.sum(np.square(offset))) / (2 * 8 * 2))  # 8 free nodes, 2D
+    tilted = true.copy()
+    tilted[1:, BOTTOM_MIDDLE] += [0.003, 0.004]
+    both = error_shares(tilted, true, SQUARE_REST, SQUARE, fixed)
+    assert (both["surface_normal_share"], both["surface_tangential_share"]) == (pytest.approx(16 / 25),
+                                                                                pytest.approx(9 / 25))
+
+
+def test_2d_cells_must_be_triangles():
+    with pytest.raises(ValueError, match=r"2D mesh must be triangles \[C, 3\]"):
+        error_shares(np.zeros((3, 9, 2)), np.zeros((3, 9, 2)), SQUARE_REST, np.zeros((2, 4), dtype=int),
+                     np.zeros(9, dtype=bool))

@@ -301,12 +301,12 @@ def diagnose(checkpoint: str, dataset: str = "tissue_cpu", data_dir: str | None 
              split: Literal["train", "val", "test"] = "val", trajectories: int = 9,
              schedule: Sequence[str] = ("every:1", "never"), output: str | None = None,
              visibility_radius: float | None = None) -> str:
-    """Where a 3D checkpoint's rollout error lives: surface normal, surface tangential, interior,
-    and by what the cameras saw (seen, sometimes seen, never seen).
+    """Where a checkpoint's rollout error lives: surface normal, surface tangential, interior (in 2D
+    the surface is the outline), and by what the cameras saw (seen, sometimes seen, never seen).
 
     Args:
         checkpoint: the model checkpoint (.ckpt) to roll out, or a pretrained name (tissue/ggns)
-        dataset: data preset (3D) whose split holds the trajectories
+        dataset: data preset whose split holds the trajectories
         data_dir: folder of the split files (default: the preset's output)
         split: the split
         trajectories: the first n trajectories of the split, rolled out as one batch
@@ -326,8 +326,8 @@ def diagnose(checkpoint: str, dataset: str = "tissue_cpu", data_dir: str | None 
     model = load_model(checkpoint, map_location="cpu")
     data = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False)
     chosen = data.trajectories(split)[:trajectories]
-    if not chosen or chosen[0].dim != 3:
-        raise ValueError(f"diagnose needs 3D trajectories; {dataset}/{split} has {'none' if not chosen else chosen[0].dim}")
+    if not chosen:
+        raise ValueError(f"diagnose needs trajectories; {dataset}/{split} has none")
     check_model_fits(model, chosen[0].dim, data.config["scene"]["name"])
     batch = TrajectoryBatch.from_trajectories(chosen)
     rows, done, parts = [], set(), []

@@ -1,4 +1,4 @@
-"""Where a 3D rollout's error lives, against what a depth camera can see of it.
+"""Where a rollout's error lives, against what a depth camera can see of it (3D, and the 2D plate).
 
 A point cloud samples the object's surface, so it shows a surface node's displacement along the
 surface normal directly; its displacement along a flat surface (tangential) and the interior
@@ -11,7 +11,11 @@ splits the squared position error of the free mesh nodes of a prediction into th
     interior            nodes on no boundary triangle
 
 A grounded model whose full-rollout error with a point cloud every step stays mostly tangential
-and interior has learned to read the normal part only.
+and interior has learned to read the normal part only. In 2D the "surface" is the outline (boundary
+segments, the vertex normal the length-weighted mean of the outward segment normals at the node):
+the plate's camera sees its whole face, but voxel centroids inside it sit on a fixed grid whatever the
+mesh does, so only the outline's position is in its points, and the interior part is the error the
+points can correct only through the mesh.
 
 Not every boundary node is in view: a mesh whose wall is one element thick (the cavity) has no
 interior nodes at all, yet its inner wall faces away from the cameras. Given the trajectory's point
@@ -46,20 +50,25 @@ RADIUS_EDGES = 0.75  # the default radius in medians of the nodes' shortest rest
 
 
 def vertex_normals(positions: np.ndarray, facets: np.ndarray) -> np.ndarray:
-    """Unit area-weighted vertex normals [N, 3] of the triangles `facets` [F, 3] (oriented outward);
-    zero for nodes on no facet."""
+    """Unit area-weighted vertex normals [N, 3] of the triangles `facets` [F, 3] (oriented outward),
+    or length-weighted ones [N, 2] of the segments `facets` [F, 2] in 2D (oriented counter-clockwise,
+    `geometry.boundary_facets`); zero for nodes on no facet."""
     x = np.asarray(positions, dtype=np.float64)
-    face = np.cross(x[facets[:, 1]] - x[facets[:, 0]], x[facets[:, 2]] - x[facets[:, 0]])  # 2 x area x normal
+    if x.shape[1] == 2:
+        t = x[facets[:, 1]] - x[facets[:, 0]]
+        face = np.stack([t[:, 1], -t[:, 0]], axis=1)  # length x outward normal
+    else:
+        face = np.cross(x[facets[:, 1]] - x[facets[:, 0]], x[facets[:, 2]] - x[facets[:, 0]])  # 2 x area x normal
     normals = np.zeros_like(x)
-    for k in range(3):
+    for k in range(facets.shape[1]):
         np.add.at(normals, facets[:, k], face)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     return np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
 
 
 def default_visibility_radius(rest, cells) -> float:
-    """`RADIUS_EDGES` x the median over the nodes of `cells` [C, 4] of each node's shortest mesh edge
-    at `rest` [N, 3] (module docstring)."""
+    """`RADIUS_EDGES` x the median over the nodes of `cells` [C, d + 1] of each node's shortest mesh
+    edge at `rest` [N, d] (module docstring)."""
     edges = cell_edges(cells)
     if not len(edges):
         raise ValueError("the default visibility radius is found from the mesh edges and this mesh has none")
@@ -97,10 +106,10 @@ def seen_fraction(true, points, point_offsets, radius: float) -> np.ndarray:
 
 def error_shares(pred, true, rest, cells, fixed, points=None, point_offsets=None,
                  radius: float | None = None) -> dict[str, float]:
-    """Squared error of the free nodes over the states 1..T-1 of a 3D prediction, split into
-    `PARTS` (module docstring): {part: mean squared error per free node and coordinate, part +
-    "_share": its fraction of the total}. pred, true [T, N, 3]; rest [N, 3]; cells [C, 4];
-    fixed [N] bool.
+    """Squared error of the free nodes over the states 1..T-1 of a prediction, split into `PARTS`
+    (module docstring): {part: mean squared error per free node and coordinate, part + "_share": its
+    fraction of the total}. pred, true [T, N, d] (d = 2 or 3); rest [N, d]; cells [C, d + 1]
+    (triangles in 2D, tetrahedra in 3D); fixed [N] bool.
 
     With the trajectory's `points` and `point_offsets` (`seen_fraction`), also split into the
     `VISIBILITY` groups of the free nodes: group and group + "_share" as for a part (the groups,
@@ -108,15 +117,17 @@ def error_shares(pred, true, rest, cells, fixed, points=None, point_offsets=None
     "_node_mse": mean squared error per node of the group and coordinate (nan for an empty group),
     and "visibility_radius": the radius used (default: `default_visibility_radius`)."""
     pred, true = np.asarray(pred, dtype=np.float64), np.asarray(true, dtype=np.float64)
-    if pred.shape != true.shape or pred.ndim != 3 or pred.shape[-1] != 3:
-        raise ValueError(f"pred {pred.shape} and true {true.shape} must both be [T, N, 3]")
+    if pred.shape != true.shape or pred.ndim != 3 or pred.shape[-1] not in (2, 3):
+        raise ValueError(f"pred {pred.shape} and true {true.shape} must both be [T, N, 2] or [T, N, 3]")
     if len(pred) < 2:
         raise ValueError("need at least two states (the first one is not predicted)")
+    dim = pred.shape[-1]
+    kind = "tetrahedra" if dim == 3 else "triangles"
     cells, fixed = np.asarray(cells, dtype=np.int64), np.asarray(fixed, dtype=bool)
-    if cells.ndim != 2 or cells.shape[1] != 4:
-        raise ValueError(f"cells must be tetrahedra [C, 4], got {cells.shape}")
+    if cells.ndim != 2 or cells.shape[1] != dim + 1:
+        raise ValueError(f"cells of a {dim}D mesh must be {kind} [C, {dim + 1}], got {cells.shape}")
     if not len(cells):
-        raise ValueError("the surface is found from the tetrahedra and this mesh has none (the authors' 3D "
+        raise ValueError(f"the surface is found from the {kind} and this mesh has none (the authors' 3D "
                          "datasets hold no volume cells, docs/dataset_format.md)")
     if fixed.shape != (pred.shape[1],):
         raise ValueError(f"fixed must be [{pred.shape[1]}], got {fixed.shape}")
@@ -137,7 +148,7 @@ def error_shares(pred, true, rest, cells, fixed, points=None, point_offsets=None
         sums["surface_tangential"] += float(((error[on] ** 2).sum(axis=1) - normal[on] ** 2).sum())
         sums["interior"] += float((error[inside] ** 2).sum())
     steps = len(pred) - 1
-    count = steps * int(free.sum()) * 3
+    count = steps * int(free.sum()) * dim
     total = sum(sums.values())
     out = {part: value / count for part, value in sums.items()}
     out.update({f"{part}_share": (value / total if total > 0 else 0.0) for part, value in sums.items()})
@@ -156,6 +167,6 @@ def error_shares(pred, true, rest, cells, fixed, points=None, point_offsets=None
         out[g] = group_sums[g] / count
         out[f"{g}_share"] = group_sums[g] / group_total if group_total > 0 else 0.0
         out[f"{g}_nodes"] = nodes
-        out[f"{g}_node_mse"] = group_sums[g] / (steps * nodes * 3) if nodes else float("nan")
+        out[f"{g}_node_mse"] = group_sums[g] / (steps * nodes * dim) if nodes else float("nan")
     out["visibility_radius"] = radius
     return out

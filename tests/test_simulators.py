@@ -14,7 +14,7 @@ from ggns.batch import TrajectoryBatch
 from ggns.data.module import SimulationDataModule, WindowDataset, collate
 from ggns.evaluation.rollout import RolloutError, rollout
 from ggns.evaluation.schedules import EveryK, FirstM, Never
-from ggns.models.simulators import GGNS, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared
+from ggns.models.simulators import GGNS, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared, linear_decay
 from conftest import T, first_graph, make, normalizer_buffers, quiet_trainer
 
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -373,3 +373,39 @@ def test_noise_field_moves_free_nodes_smoothly_and_is_refused_when_negative(traj
     assert torch.equal(clean["mesh"].pos, batch.positions[0])
     with pytest.raises(ValueError, match="noise_field_std >= 0"):
         make(GGNS, noise_field_std=-0.1)
+
+
+def test_noise_field_on_point_cloud_samples_only_and_its_linear_decay(trajs, tiny_data_dir, tmp_path):
+    """`noise_field_points_only`: a window drawn without its point clouds gets no field (a blind step
+    cannot see it); `noise_field_decay_steps`: the field's std falls linearly to 0 with the optimizer
+    step. Both survive a checkpoint round trip as hyperparameters; bad settings are refused."""
+    batch = collate([WindowDataset(trajs["train"], 1)[i] for i in range(4)])
+    model = make(GGNS, noise_std=0.0, noise_field_std=0.05, noise_field_points_only=True, point_probability=0.5)
+    for seed in range(20):  # the first seed that draws both kinds among the 4 windows
+        torch.manual_seed(seed)
+        (graph, _), = model.training_graphs(batch, train=True)
+        with_points = torch.zeros(batch.num_graphs, dtype=torch.bool)
+        with_points[graph["point"].batch] = True
+        if with_points.any() and not with_points.all():
+            break
+    assert with_points.any() and not with_points.all()
+    moved = (graph["mesh"].pos - batch.positions[0]).norm(dim=1)
+    for g in range(batch.num_graphs):
+        nodes = (batch.mesh_batch == g) & ~batch.fixed
+        assert (moved[nodes] > 0).all() if with_points[g] else (moved[nodes] == 0).all(), g
+    decaying = make(GGNS, noise_field_std=0.04, noise_field_decay_steps=100)
+    assert decaying.noise_field_std_now() == 0.04  # no trainer: step 0
+    assert [linear_decay(0.04, 100, step) for step in (0, 25, 100, 150)] == pytest.approx([0.04, 0.03, 0.0, 0.0])
+    assert linear_decay(0.04, 0, 10**6) == 0.04
+    decaying.hparams.statistics_batches = 1
+    trainer = quiet_trainer(tmp_path)  # one optimizer step
+    trainer.fit(decaying, SimulationDataModule("plate_tiny", data_dir=str(tiny_data_dir), batch_size=4,
+                                               generate_missing=False))
+    assert decaying.noise_field_std_now() == pytest.approx(0.04 * (1 - 1 / 100))
+    trainer.save_checkpoint(tmp_path / "model.ckpt")
+    loaded = GGNS.load_from_checkpoint(tmp_path / "model.ckpt", weights_only=True)
+    assert (loaded.hparams.noise_field_decay_steps, loaded.hparams.noise_field_points_only) == (100, False)
+    with pytest.raises(ValueError, match="noise_field_points_only needs point clouds"):
+        make(MGN, noise_field_points_only=True)
+    with pytest.raises(ValueError, match="noise_field_decay_steps must be >= 0"):
+        make(GGNS, noise_field_decay_steps=-1)

@@ -55,6 +55,11 @@ RNG_KEY = "ggns_rng_states"
 LstmState = tuple[Tensor, Tensor] | None
 
 
+def linear_decay(value: float, steps: int, step: int) -> float:
+    """`value` falling linearly to 0 over `steps` (0: constant), at `step`."""
+    return value * max(0.0, 1.0 - step / steps) if steps else value
+
+
 class GraphSimulator(pl.LightningModule):
     """Shared base (module docstring). Args:
         connectivity: graph preset (conf/graphs/<name>.yaml) or YAML path.
@@ -65,6 +70,10 @@ class GraphSimulator(pl.LightningModule):
         noise_field_std, noise_field_wavelength, noise_field_mixture: std, wavelength and per-graph scale
             mixture of a smooth random displacement field added on top (`training_noise.smooth_field`;
             std 0, the default, is the paper's noise alone).
+        noise_field_points_only: the field only on training samples that get their point clouds (a blind
+            step cannot see a smooth offset, so there it only adds unlearnable noise to the target).
+        noise_field_decay_steps: the field's std falls linearly to 0 over this many optimizer steps
+            (0, the default: constant).
         lr: Adam learning rate (paper: 5e-4).
         lr_final, lr_decay_rate, lr_decay_steps, lr_warmup_steps: schedule per optimizer step (`lr_schedule`):
             lr_final + (lr - lr_final) * lr_decay_rate ** (step / lr_decay_steps), times a linear warm-up over
@@ -91,7 +100,8 @@ class GraphSimulator(pl.LightningModule):
                  std_floor: float = DEFAULT_STD_FLOOR, lr_final: float = 0.0, lr_decay_rate: float = 1.0,
                  lr_decay_steps: int = 1, lr_warmup_steps: int = 0, noise_field_std: float = 0.0,
                  noise_field_wavelength: float = 4.0, noise_field_mixture: bool = False,
-                 type_partition: bool | None = None):
+                 type_partition: bool | None = None, noise_field_points_only: bool = False,
+                 noise_field_decay_steps: int = 0):
         super().__init__()
         self.save_hyperparameters()
         validate_schedule(lr, lr_final, lr_decay_rate, lr_decay_steps, lr_warmup_steps)
@@ -102,7 +112,12 @@ class GraphSimulator(pl.LightningModule):
         if noise_std < 0 or noise_field_std < 0 or noise_field_wavelength <= 0 or window < 1:
             raise ValueError(f"need noise_std >= 0, noise_field_std >= 0, noise_field_wavelength > 0 and window >= 1; "
                              f"got {noise_std}, {noise_field_std}, {noise_field_wavelength}, {window}")
+        if noise_field_decay_steps < 0:
+            raise ValueError(f"noise_field_decay_steps must be >= 0, got {noise_field_decay_steps}")
         self.connectivity: Connectivity = load_connectivity(connectivity)
+        if noise_field_points_only and not self.connectivity.uses_points:
+            raise ValueError(f"noise_field_points_only needs point clouds, and connectivity {connectivity!r} has no "
+                             f"point edges")
         if point_probability > 0 and not self.connectivity.uses_points:
             raise ValueError(f"point_probability={point_probability} but connectivity {connectivity!r} has no point "
                              f"edges; set point_probability=0 or use a connectivity with point radii")
@@ -173,14 +188,21 @@ class GraphSimulator(pl.LightningModule):
             pos = batch.positions[t]
             if train and self.hparams.noise_std > 0:
                 pos = pos + torch.randn_like(pos) * self.hparams.noise_std * free
-            if train and self.hparams.noise_field_std > 0:
-                field = smooth_field(batch.rest, batch.mesh_batch, batch.num_graphs, self.hparams.noise_field_std,
+            field_std = self.noise_field_std_now() if train else 0.0
+            if field_std > 0:
+                field = smooth_field(batch.rest, batch.mesh_batch, batch.num_graphs, field_std,
                                      self.hparams.noise_field_wavelength,
                                      mixture=self.hparams.noise_field_mixture)
+                if self.hparams.noise_field_points_only:
+                    field = field * use_points[batch.mesh_batch, None]
                 pos = pos + field * free
             graph = state_graph(batch, t, pos, use_points, self.connectivity, self.with_material)
             samples.append((graph, batch.positions[t + 1] - pos))
         return samples
+
+    def noise_field_std_now(self) -> float:
+        """The smooth field's std at this optimizer step (`noise_field_decay_steps`)."""
+        return linear_decay(self.hparams.noise_field_std, self.hparams.noise_field_decay_steps, self.global_step)
 
     def window_loss(self, batch: TrajectoryBatch, train: bool = True,
                     by_points: bool = False) -> Tensor | tuple[Tensor, dict[str, Tensor]]:

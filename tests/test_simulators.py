@@ -14,12 +14,12 @@ from ggns.batch import TrajectoryBatch
 from ggns.data.module import SimulationDataModule, WindowDataset, collate
 from ggns.evaluation.rollout import RolloutError, rollout
 from ggns.evaluation.schedules import EveryK, FirstM, Never
-from ggns.models.simulators import GGNS, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared, linear_decay
+from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared, linear_decay
 from conftest import T, first_graph, make, normalizer_buffers, quiet_trainer
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
-ALL_MODELS = (GGNS, GGNSLSTM, MGN, MGNM, MGNShared, GGNSM)
+ALL_MODELS = (GGNS, GGNSLSTM, MGN, MGNM, MGNShared, GGNSM, GGNSID)
 
 
 # ---- 1. forward shapes ---------------------------------------------------------------------------
@@ -31,10 +31,12 @@ def test_step_returns_a_finite_displacement_per_mesh_node(cls, val_batch):
     with torch.no_grad():
         displacement, state = model.step(graph, None)
     assert displacement.shape == (n, 2) and torch.isfinite(displacement).all()
-    assert graph["mesh"].x.shape == (n, 2 if cls in (MGNM, GGNSM) else 1)
+    assert graph["mesh"].x.shape == (n, 2 if cls in (MGNM, GGNSM, GGNSID) else 1)
     if cls is GGNSLSTM:
         h, c = state
         assert h.shape == c.shape == (n, 16)
+    elif cls is GGNSID:  # (precision, precision-weighted mean) of the material per trajectory
+        assert [t.shape for t in state] == [(val_batch.num_graphs,)] * 2
     else:
         assert state is None
     assert torch.equal(model(graph), displacement)  # forward = one step from a fresh state
@@ -409,3 +411,40 @@ def test_noise_field_on_point_cloud_samples_only_and_its_linear_decay(trajs, tin
         make(MGN, noise_field_points_only=True)
     with pytest.raises(ValueError, match="noise_field_decay_steps must be >= 0"):
         make(GGNS, noise_field_decay_steps=-1)
+
+
+def test_ggns_id_reads_the_material_from_points_only_and_never_from_the_label(val_batch, tiny_data_dir, tmp_path):
+    """GGNSID (issue 24): the training graphs carry the label (teacher forcing) and its estimator's
+    Gaussian NLL joins the loss on samples with points; a rollout's graphs carry no label, so changing the
+    batch's materials changes nothing, while blind steps keep the prior (the training labels' mean) and
+    point clouds move the estimate. Survives a checkpoint round trip and runs in the rollout engine."""
+    model = make(GGNSID, statistics_batches=1)
+    data = SimulationDataModule("plate_tiny", data_dir=str(tiny_data_dir), batch_size=4, generate_missing=False)
+    trainer = quiet_trainer(tmp_path)
+    trainer.fit(model, data)
+    assert model.material_normalizer.frozen and model.estimator.input_normalizer["mesh"].frozen
+    train = dataclasses.replace(val_batch, positions=val_batch.positions[:2])
+    (graph, _), = model.training_graphs(train, train=False)
+    assert torch.equal(graph["mesh"].x[:, 1], val_batch.material[val_batch.mesh_batch])
+    assert model.auxiliary_loss(graph, train) is not None and torch.isfinite(model.auxiliary_loss(graph, train))
+    without = first_graph(model, val_batch, False)
+    assert model.auxiliary_loss(without, train) is None  # nothing to read the material from
+    trainer.save_checkpoint(tmp_path / "id.ckpt")
+    loaded = GGNSID.load_from_checkpoint(tmp_path / "id.ckpt", weights_only=True).eval()
+    model.eval()
+    other = dataclasses.replace(val_batch, material=-val_batch.material, material_known=(False,) * val_batch.num_graphs)
+    prior = float(loaded.material_normalizer.mean[0])
+    with torch.no_grad():
+        for schedule in (EveryK(1), Never()):
+            positions, state = rollout(loaded.step, val_batch, schedule, loaded.connectivity)
+            again, _ = rollout(loaded.step, other, schedule, loaded.connectivity)
+            assert torch.isfinite(positions).all() and torch.equal(positions, again)
+            estimate = loaded.material_estimate(state)
+            if isinstance(schedule, Never):
+                torch.testing.assert_close(estimate, torch.full_like(estimate, prior))
+            else:
+                assert not torch.allclose(estimate, torch.full_like(estimate, prior))
+        torch.testing.assert_close(rollout(model.step, val_batch, EveryK(1), model.connectivity)[0],
+                                   rollout(loaded.step, val_batch, EveryK(1), loaded.connectivity)[0])
+    with pytest.raises(ValueError, match="estimates the material from point clouds"):
+        make(GGNSID, connectivity="plate_mgn", point_probability=0.0)

@@ -7,6 +7,9 @@
     MGN       MeshGraphNets: per-type encoders, one edge MLP per edge type, world edges, no points
     MGNM      MGN(M): MGN with the Poisson's ratio as a mesh node feature
     MGNShared the authors' plate MGN: GGNS's shared processor on mesh and collider edges, no world edges
+    GGNSM     GGNS(M), an ablation: GGNS told the Poisson's ratio (as MGN(M) is)
+    GGNSID    beyond the paper: GGNS(M)'s dynamics fed the material that a second, small network reads
+              from the point clouds seen so far (trained on the labels; rollouts never read them)
 
 A class fixes the model family (class attributes); its init args tune it. The model predicts
 the displacement x_{t+1} - x_t of every mesh node from the graph of state t (`TrajectoryBatch.
@@ -91,7 +94,8 @@ class GraphSimulator(pl.LightningModule):
     edge_partition = False  # one edge MLP per edge type (MGN) or one shared processor (GGNS)
     type_encoding = "one_hot"  # "one_hot" (GGNS) or "per_type" encoders (MGN)
     recurrent = False  # LSTM between processor and decoder
-    with_material = False  # Poisson's ratio as a mesh node feature (MGN(M))
+    with_material = False  # Poisson's ratio as a mesh node feature, from the data (MGN(M))
+    material_input = False  # a material column that the model fills itself (GGNSID), not the graph
 
     def __init__(self, connectivity: str = "plate_full_graph", dim: int = 2, latent: int = 128, blocks: int = 5,
                  mlp_layers: int = 1, point_probability: float = 0.5, noise_std: float = 0.01, lr: float = 5e-4,
@@ -130,7 +134,8 @@ class GraphSimulator(pl.LightningModule):
         if type_partition is not None:  # the paper's "MGN (1H)" ablation and its converse, per instance
             self.edge_partition = type_partition
             self.type_encoding = "per_type" if type_partition else "one_hot"
-        self.core = EncodeProcessDecode(*self.input_dims(self.connectivity, dim, self.with_material), out_dim=dim,
+        self.core = EncodeProcessDecode(*self.input_dims(self.connectivity, dim, self.with_material or self.material_input),
+                                        out_dim=dim,
                                         latent=latent, blocks=blocks, mlp_layers=mlp_layers,
                                         edge_partition=self.edge_partition, type_encoding=self.type_encoding,
                                         std_floor=std_floor)
@@ -216,7 +221,8 @@ class GraphSimulator(pl.LightningModule):
         for graph, target in self.training_graphs(batch, train):
             out, state = self.predict_normalized(graph, state)
             squared = (out[free] - self.target_normalizer(target[free])).square()  # [free nodes, d]
-            losses.append(squared.mean())
+            extra = self.auxiliary_loss(graph, batch)
+            losses.append(squared.mean() if extra is None else squared.mean() + extra)
             if by_points:
                 error, owner = squared.mean(dim=1), batch.mesh_batch[free]
                 samples.append(error.new_zeros(batch.num_graphs).index_add_(0, owner, error)
@@ -234,6 +240,13 @@ class GraphSimulator(pl.LightningModule):
         groups = {name: samples[mask].mean() for name, mask in (("points", with_points), ("no_points", ~with_points))
                   if mask.any()}
         return loss, groups
+
+    def auxiliary_loss(self, graph: HeteroData, batch: TrajectoryBatch) -> Tensor | None:
+        """A loss added to a transition's (normalized) MSE, for models with a second head (GGNSID)."""
+        return None
+
+    def update_statistics(self, graph: HeteroData, batch: TrajectoryBatch) -> None:
+        """More normalization statistics from a training graph, for models with more normalizers."""
 
     def training_step(self, batch: TrajectoryBatch, batch_idx: int) -> Tensor:
         loss, groups = self.window_loss(batch, train=True, by_points=True)
@@ -273,13 +286,15 @@ class GraphSimulator(pl.LightningModule):
             for graph, target in self.training_graphs(batch, train=True):
                 self.core.input_normalizer.update(graph_features(graph))
                 self.target_normalizer.update(target[free])
+                self.update_statistics(graph, batch)
                 count += batch.num_graphs
         if count == 0:
             raise ValueError("no training samples for the normalization statistics")
         if self._world_size() > 1:  # each rank saw its own windows: merge, so that every rank normalizes alike
             merge_across([m for m in self.modules() if isinstance(m, Normalizer)], self.all_gather)
-        self.core.input_normalizer.freeze()
-        self.target_normalizer.freeze()
+        for normalizer in self.modules():
+            if isinstance(normalizer, Normalizer):
+                normalizer.freeze()
         return count
 
     def setup(self, stage: str) -> None:
@@ -410,6 +425,115 @@ class GGNSM(GGNS):
     with_material = True
 
 
+class GGNSID(GGNS):
+    """GGNS that identifies the material from its point clouds (issue 24; not a model of the paper).
+
+    A second, small graph network (`estimator`, on GGNS's graph with the point cloud and without any
+    material) reads each state that has a point cloud and says which Poisson's ratio it shows, as a
+    Gaussian per trajectory (mean and log-variance, the mean over the mesh nodes of two outputs). Over a
+    rollout the estimates of the states with point clouds are fused by their precision with a prior
+    (the training labels' mean and std): the estimate moves only when points are seen, is kept through
+    blind steps, sharpens with each cloud, and weighs states that show the material (in contact) above
+    those that do not, as the network learns to say. The dynamics network is GGNS(M)'s, the material a
+    mesh node feature: in training the label (teacher forcing), in rollouts the fused estimate. The
+    estimator trains on the label with the Gaussian negative log-likelihood (times
+    `material_loss_weight`), on the samples that have their point clouds. Rollouts never read the
+    label: their graphs are built without it, so data without materials roll out.
+
+    Against GGNS+LSTM: the LSTM carries a per-node state updated at every step, blind ones included,
+    by whatever the network learns to keep; here one number per trajectory (with its uncertainty) is
+    carried, changed only by observations, and trained against the quantity it stands for. Like MGN(M)
+    and GGNS(M), and unlike GGNS and GGNS+LSTM, it needs the material labels in training.
+    """
+
+    material_input = True
+
+    def __init__(self, connectivity: str = "plate_full_graph", point_probability: float = 0.5,
+                 estimator_latent: int = 32, estimator_blocks: int = 3, material_loss_weight: float = 1.0,
+                 **kwargs):
+        super().__init__(connectivity=connectivity, point_probability=point_probability, **kwargs)
+        self.save_hyperparameters()
+        if not self.uses_points:
+            raise ValueError(f"GGNSID estimates the material from point clouds, and connectivity {connectivity!r} "
+                             f"has no point edges")
+        if estimator_latent < 1 or estimator_blocks < 1 or material_loss_weight < 0:
+            raise ValueError(f"need estimator_latent >= 1, estimator_blocks >= 1 and material_loss_weight >= 0; got "
+                             f"{estimator_latent}, {estimator_blocks}, {material_loss_weight}")
+        h = self.hparams
+        self.estimator = EncodeProcessDecode(*self.input_dims(self.connectivity, h.dim, True), out_dim=2,
+                                             latent=estimator_latent, blocks=estimator_blocks,
+                                             mlp_layers=h.mlp_layers, edge_partition=self.edge_partition,
+                                             type_encoding=self.type_encoding, std_floor=h.std_floor)
+        self.material_normalizer = Normalizer(1, h.std_floor)
+
+    @staticmethod
+    def _set_material(graph: HeteroData, values: Tensor | None) -> HeteroData:
+        """The mesh features as the graph builder made them (the fixed flag) plus a material column:
+        `values` [B] per trajectory, or zeros (None; a constant, so no input after normalization)."""
+        mesh = graph["mesh"]
+        base = mesh.x[:, :1]
+        column = base.new_zeros(base.size(0), 1) if values is None else values.to(base.dtype)[mesh.batch, None]
+        mesh.x = torch.cat([base, column], dim=1)
+        return graph
+
+    def estimate(self, graph: HeteroData) -> tuple[Tensor, Tensor, Tensor]:
+        """(mean [B], log-variance [B], has_points [B]) of each trajectory's normalized Poisson's ratio as
+        the estimator reads it from `graph` (any material column in it is replaced by zeros first; the
+        graph's own features are restored)."""
+        mesh, num_graphs = graph["mesh"], graph.num_graphs
+        saved = mesh.x
+        out = self.estimator(self._set_material(graph, None))  # [N_mesh, 2]
+        mesh.x = saved
+        count = torch.bincount(mesh.batch, minlength=num_graphs).clamp(min=1).to(out.dtype)
+        pooled = out.new_zeros(num_graphs, 2).index_add_(0, mesh.batch, out) / count[:, None]
+        has = torch.zeros(num_graphs, dtype=torch.bool, device=out.device)
+        if "point" in graph.node_types:
+            has[graph["point"].batch] = True
+        return pooled[:, 0], pooled[:, 1].clamp(-8.0, 4.0), has
+
+    def training_graphs(self, batch: TrajectoryBatch, train: bool = True) -> list[tuple[HeteroData, Tensor]]:
+        """GGNS's samples with the label as the material column (teacher forcing)."""
+        batch.require_material("GGNSID's training")
+        return [(self._set_material(graph, batch.material), target)
+                for graph, target in super().training_graphs(batch, train)]
+
+    def auxiliary_loss(self, graph: HeteroData, batch: TrajectoryBatch) -> Tensor | None:
+        """The estimator's Gaussian negative log-likelihood of the label, on the samples with points."""
+        if "point" not in graph.node_types or self.hparams.material_loss_weight == 0:
+            return None
+        mean, log_var, has = self.estimate(graph)
+        label = self.material_normalizer(batch.material.to(mean.dtype)[:, None])[:, 0]
+        nll = 0.5 * (log_var + (label - mean).square() * torch.exp(-log_var))
+        return self.hparams.material_loss_weight * nll[has].mean()
+
+    def update_statistics(self, graph: HeteroData, batch: TrajectoryBatch) -> None:
+        saved = graph["mesh"].x
+        self.estimator.input_normalizer.update(graph_features(self._set_material(graph, None)))
+        graph["mesh"].x = saved
+        self.material_normalizer.update(batch.material.to(self.material_normalizer.acc_mean.dtype)[:, None])
+
+    def step(self, graph: HeteroData, state: LstmState = None) -> tuple[Tensor, LstmState]:
+        """The rollout step: fuse this state's estimate (if it has points) into the carried (precision,
+        precision-weighted mean) per trajectory, starting from the prior N(0, 1) in normalized units, and
+        predict with the fused estimate as the material."""
+        if state is None:
+            ones = graph["mesh"].pos.new_ones(graph.num_graphs)
+            state = (ones, torch.zeros_like(ones))
+        precision, weighted = state
+        if "point" in graph.node_types:
+            mean, log_var, has = self.estimate(graph)
+            weight = torch.exp(-log_var) * has
+            precision, weighted = precision + weight, weighted + weight * mean
+        material = self.material_normalizer.inverse((weighted / precision)[:, None])[:, 0]
+        out, _ = self.predict_normalized(self._set_material(graph, material), None)
+        return self.target_normalizer.inverse(out), (precision, weighted)
+
+    def material_estimate(self, state: LstmState) -> Tensor:
+        """The fused Poisson's ratio [B] that a rollout's final `state` holds."""
+        precision, weighted = state
+        return self.material_normalizer.inverse((weighted / precision)[:, None])[:, 0]
+
+
 class GGNSLSTM(GraphSimulator):
     """GGNS with an LSTM on the mesh latents, trained on windows of `window` steps (paper: 5)."""
 
@@ -449,7 +573,8 @@ class MGNShared(GraphSimulator):
                          eval_schedules=eval_schedules, **kwargs)
 
 
-MODELS = {"ggns": GGNS, "ggns_lstm": GGNSLSTM, "mgn": MGN, "mgn_m": MGNM, "mgn_shared": MGNShared, "ggns_m": GGNSM}
+MODELS = {"ggns": GGNS, "ggns_lstm": GGNSLSTM, "mgn": MGN, "mgn_m": MGNM, "mgn_shared": MGNShared, "ggns_m": GGNSM,
+          "ggns_id": GGNSID}
 
 
 def load_simulator(path: str | Path, map_location=None) -> GraphSimulator:

@@ -129,7 +129,7 @@ def test_cli_test_writes_paper_metrics_of_the_best_checkpoint(ggns_fit, cli_data
             f"best val/rollout_mse_k1 = ")
     assert line in capsys.readouterr().out and line in (run / "test_metrics.md").read_text()
 
-    keys = ["one_step_mse", "m10_mse"] + [f"rollout_{m}_{s}" for m in ("mse", "iou")
+    keys = ["one_step_mse", "m10_mse", "m10_pooled_mse"] + [f"rollout_{m}_{s}" for m in ("mse", "iou")
                                           for s in ("k1", "k2", "k5", "k10", "never")]
     assert sorted(summary) == sorted(keys)
     for name, s in summary.items():
@@ -211,7 +211,7 @@ def test_cli_mgn_fit_and_test(cli_data, tmp_path, capsys):
     run_cli(["test", *cli_args("mgn", cli_data, tmp_path, "test", "--ckpt_path", str(best))])
     summary = json.loads((tmp_path / "mgn" / "test" / "test_metrics.json").read_text())
     assert summary.pop("checkpoint")["selected_on"] == "val/rollout_mse_never"
-    assert sorted(summary) == ["m10_mse", "one_step_mse", "rollout_iou_never", "rollout_mse_never"]
+    assert sorted(summary) == ["m10_mse", "m10_pooled_mse", "one_step_mse", "rollout_iou_never", "rollout_mse_never"]
     assert all(math.isfinite(s["mean"]) and s["count"] == 2 for s in summary.values())
     # predict: the RolloutWriter of the config writes the rollouts of the test trajectories as a predictions
     # file, the format `python -m ggns rollout` writes (tests/test_own_data.py)

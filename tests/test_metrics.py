@@ -12,6 +12,7 @@ from ggns.evaluation import (
     Never,
     batch_iou,
     m_plus_10_mse,
+    m_plus_10_pooled_mse,
     m_plus_10_starts,
     mesh_iou,
     one_step_mse,
@@ -78,6 +79,28 @@ def test_m_plus_10_scores_only_state_m_plus_horizon():
         m_plus_10_mse({4: torch.zeros(2, T, 1, 1)}, true, horizon=horizon)
     with pytest.raises(ValueError):
         m_plus_10_mse({}, true)
+
+
+def test_m_plus_10_pooled_counts_every_step_of_every_rollout_as_the_authors_code():
+    """States 1..m+horizon of each rollout, summed over m, over sum of (m + horizon): with T = 6,
+    horizon 2 and a squared error of 1 at point-cloud steps and 9 at blind ones (one node, one
+    coordinate): m = 0..3 give 0 + 2 * 9, 1 + 18, 2 + 18, 3 + 18 over 2 + 3 + 4 + 5."""
+    T, horizon = 6, 2
+    true = torch.zeros(2, T, 1, 1)
+    preds = {}
+    for m in m_plus_10_starts(T, horizon):
+        p = torch.full((2, T, 1, 1), 100.0)  # states after m + horizon are not counted
+        p[:, 0] = 0.0
+        p[:, 1 : m + 1] = 1.0
+        p[:, m + 1 : m + horizon + 1] = 3.0
+        preds[m] = p
+    assert m_plus_10_pooled_mse(preds, true, horizon=horizon) == pytest.approx((0 + 1 + 2 + 3 + 4 * 18) / 14)
+    blind_only = {m: torch.where(torch.arange(T)[None, :, None, None] > m, 3.0, 0.0).expand(2, T, 1, 1) for m in preds}
+    # all steps equally wrong: the pooled value is that error, the paper's m+10 too
+    assert m_plus_10_pooled_mse({m: torch.full((2, T, 1, 1), 3.0) for m in preds}, true, horizon=horizon) == 9.0
+    assert m_plus_10_pooled_mse(blind_only, true, horizon=horizon) < m_plus_10_mse(blind_only, true, horizon=horizon)[0]
+    with pytest.raises(ValueError, match="do not hold states"):
+        m_plus_10_pooled_mse({4: torch.zeros(2, T, 1, 1)}, true, horizon=horizon)
 
 
 def test_schedules():

@@ -82,6 +82,11 @@ def test_model_points(checkpoints, tiny_data_dir):
     rows = model_points(checkpoints, "plate_tiny", ("every:1", "never"), trajectories=2, batch=3, repeats=1,
                         devices=["cpu"], data_dir=str(tiny_data_dir))
     assert [(r["name"], r["setting"]) for r in rows] == [("mgn", "never"), ("ggns", "every:1"), ("ggns", "never")]
+    sizes = {r["name"]: (r["model_class"], r["latent"], r["blocks"], r["parameters"]) for r in rows}
+    for name, path in checkpoints.items():  # model size, an axis of the trade-off
+        model = load_simulator(path)
+        assert sizes[name] == (type(model).__name__, model.hparams.latent, model.hparams.blocks,
+                               sum(p.numel() for p in model.parameters()))
     for row in rows:
         assert row["ms_per_step_1"] > 0 and row["ms_per_step_batched"] > 0
         assert row["ms_per_trajectory_step"] == pytest.approx(row["ms_per_step_batched"] / 3)

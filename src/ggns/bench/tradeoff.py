@@ -46,7 +46,9 @@ for 1 trajectory and for `batch` trajectories at once (test trajectories repeate
 median of `repeats` rollouts after a warm-up (`timing.time_rollout`), on the CPU (torch's
 threads, or `threads`, which the device column then names; the simulator always runs on 1) and,
 when present, CUDA; the rollout MSE (`metrics.rollout_mse`, all nodes, as in `evaluate_batch`) of the
-first `trajectories` test trajectories against the dataset.
+first `trajectories` test trajectories against the dataset. Each model row names its size (class,
+latent width, processor blocks, parameter count), so checkpoints of several sizes put model size on
+the trade-off as an axis beside mesh resolution.
 
 The plot's x axis is ms per trajectory-step (models: the batched time divided by the batch; the
 simulator runs one trajectory at a time), y the rollout MSE; both are logarithmic, so zero errors
@@ -83,7 +85,8 @@ from .timing import NoSensor, default_devices, time_rollout, time_trajectories
 
 COLUMNS = ("kind", "name", "setting", "device", "nodes", "steps", "trajectories", "ms_per_step_1",
            "batch", "ms_per_step_batched", "ms_per_trajectory_step", "rollout_mse", "reference", "pareto",
-           "resolution", "axis", "substeps", "newton_tolerance", "newton_iterations", "mse_vs_preset_tolerance")
+           "resolution", "axis", "substeps", "newton_tolerance", "newton_iterations", "mse_vs_preset_tolerance",
+           "model_class", "latent", "blocks", "parameters")
 
 
 def reference_substeps_for(preset_substeps: int, coarsen) -> int:
@@ -274,7 +277,9 @@ def _model_points(checkpoints, dataset, schedules, trajectories, batch, repeats,
                     "nodes": int(np.mean(np.diff(one.node_offsets))), "steps": steps, "trajectories": len(scored),
                     "ms_per_step_1": ms_one, "batch": batch, "ms_per_step_batched": ms_many,
                     "ms_per_trajectory_step": ms_many / batch, "rollout_mse": mse, "reference": reference,
-                    "resolution": resolution,
+                    "resolution": resolution, "model_class": type(model).__name__,
+                    "latent": model.hparams.latent, "blocks": model.hparams.blocks,
+                    "parameters": sum(p.numel() for p in model.parameters()),
                 })
         model.cpu()
     return rows

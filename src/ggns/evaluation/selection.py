@@ -9,7 +9,7 @@ the scalars; the configs' ModelCheckpoints keep `best-<family>-step=<N>.ckpt`):
     m10                     the m+10-step MSE: val/m10_mse
 
 Test metric -> family (`metric_family`): rollout_mse_<s>, rollout_iou_<s> and generated_mesh_iou_<s>
--> s; m10_mse -> m10; one_step_mse -> "one_step", which is tested with the k1 checkpoint where
+-> s; m10_mse and m10_pooled_mse -> m10; one_step_mse -> "one_step", which is tested with the k1 checkpoint where
 there is one (its predictions see a point cloud every step) and the never checkpoint otherwise.
 A family without a best checkpoint of its own falls back along `candidates`.
 """
@@ -38,7 +38,7 @@ def checkpoint_glob(family: str) -> str:
 
 def metric_family(metric: str) -> str:
     """The family a test metric is tested with (module docstring)."""
-    if metric == "m10_mse":
+    if metric in ("m10_mse", "m10_pooled_mse"):
         return M10
     if metric == "one_step_mse":
         return ONE_STEP

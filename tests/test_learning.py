@@ -178,3 +178,24 @@ def test_every_variant_of_the_tissue_learning_files_parses(name, tmp_path):
         cli = build_cli(argv, run=False)
         assert cli.model.hparams.dim == 3 and cli.model.hparams.connectivity.startswith("tissue_")
         assert cli.datamodule.hparams.dataset == "tissue_cpu"
+
+
+@pytest.mark.parametrize("name", ["plate_cpu_reach", "plate_cpu_reach_mgn"])
+def test_every_variant_of_the_plate_reach_learning_files_parses(name, tmp_path):
+    """Issue 24's plate learning files: each variant builds through the Lightning CLI with its class
+    switch (GGNSID, MGN(M)) and settings (per-type processor, blocks, latent, the field's decay)."""
+    from ggns.cli import build_cli
+    from ggns.models.simulators import GGNSID, MGNM
+
+    for run in variant_runs(load_learning(name, [f"output={tmp_path}"])):
+        argv = ["--config", run.config, "--seed_everything", str(run.seed),
+                "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
+        model = build_cli(argv, run=False).model
+        assert model.hparams.dim == 2 and model.hparams.connectivity.startswith("plate_")
+        assert isinstance(model, GGNSID) == ("id" in run.model.split("_"))
+        assert isinstance(model, MGNM) == (run.model == "mgn_m")
+        assert model.edge_partition == (run.model.startswith("partition") or run.model == "mgn_m")
+        if "blocks_5" in run.model or "blocks_10" in run.model:
+            assert model.hparams.blocks == int(run.model.rsplit("_", 1)[1])
+        if run.model.endswith("field_decay"):
+            assert model.hparams.noise_field_decay_steps == 8000

@@ -6,13 +6,16 @@ Runs single-threaded (conftest `single_thread`)."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 import torch
 
 from ggns.batch import TrajectoryBatch
 from ggns.data.module import SimulationDataModule, WindowDataset, collate
-from ggns.evaluation.rollout import RolloutError, rollout
+from ggns.evaluation.evaluate import m_plus_10_profile, pooled_over
+from ggns.evaluation.metrics import m_plus_10_pooled_mse
+from ggns.evaluation.rollout import RolloutError, m_plus_10_rollouts, rollout
 from ggns.evaluation.schedules import EveryK, FirstM, Never
 from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared, linear_decay
 from conftest import T, first_graph, make, normalizer_buffers, quiet_trainer
@@ -446,5 +449,16 @@ def test_ggns_id_reads_the_material_from_points_only_and_never_from_the_label(va
                 assert not torch.allclose(estimate, torch.full_like(estimate, prior))
         torch.testing.assert_close(rollout(model.step, val_batch, EveryK(1), model.connectivity)[0],
                                    rollout(loaded.step, val_batch, EveryK(1), loaded.connectivity)[0])
+    # `diagnose --m-plus-10-stride`: per start m, the m+10 errors and the material carried after m point clouds
+    profile = m_plus_10_profile(loaded, val_batch, [0, 2, 4], horizon=3)
+    assert [r["m"] for r in profile] == [0, 2, 4] and all(r["m10_mse"] > 0 for r in profile)
+    assert math.isnan(profile[0]["material_error"])  # no point cloud yet
+    estimate = loaded.material_estimate(rollout(loaded.step, val_batch, EveryK(1), loaded.connectivity, steps=4)[1])
+    assert profile[2]["material_error"] == pytest.approx((estimate - val_batch.material).abs().mean().item())
+    assert "material_error" not in m_plus_10_profile(make(GGNS), val_batch, [1], horizon=3)[0]
+    # the pooled score of those rollouts together: each m's pooled value weighed by its m + horizon steps
+    preds = m_plus_10_rollouts(loaded.step, val_batch, loaded.connectivity, 3, [0, 2, 4])
+    whole = [m_plus_10_pooled_mse({m: p[None] for m, p in preds.items()}, val_batch.positions[None], horizon=3)]
+    assert pooled_over(profile, horizon=3) == pytest.approx(whole[0])
     with pytest.raises(ValueError, match="estimates the material from point clouds"):
         make(GGNSID, connectivity="plate_mgn", point_probability=0.0)

@@ -300,7 +300,7 @@ def export(checkpoint: str, dataset: str = "plate_small", data_dir: str | None =
 def diagnose(checkpoint: str, dataset: str = "tissue_cpu", data_dir: str | None = None,
              split: Literal["train", "val", "test"] = "val", trajectories: int = 9,
              schedule: Sequence[str] = ("every:1", "never"), output: str | None = None,
-             visibility_radius: float | None = None) -> str:
+             visibility_radius: float | None = None, m_plus_10_stride: int = 0) -> str:
     """Where a checkpoint's rollout error lives: surface normal, surface tangential, interior (in 2D
     the surface is the outline), and by what the cameras saw (seen, sometimes seen, never seen).
 
@@ -313,6 +313,7 @@ def diagnose(checkpoint: str, dataset: str = "tissue_cpu", data_dir: str | None 
         schedule: point-cloud schedules to roll out (a model without point clouds uses never)
         output: also write the table to this markdown file
         visibility_radius: a node is seen at a step with a point this close (default: 0.75 x the nodes' median shortest rest edge)
+        m_plus_10_stride: also the m+10 error per start m, every this many m (0: not); for GGNSID also its material estimate's error after m point clouds
     """
     from .batch import TrajectoryBatch
     from .data.module import SimulationDataModule
@@ -356,6 +357,22 @@ def diagnose(checkpoint: str, dataset: str = "tissue_cpu", data_dir: str | None 
                   f"at >= {SEEN_AT_LEAST:.0%} of the steps: seen, at none: never_seen. Free nodes over the "
                   f"{len(chosen)} trajectories: "
                   + ", ".join(f"{g} {nodes[g]} ({nodes[g] / max(sum(nodes.values()), 1):.2f})" for g in VISIBILITY)
+                  + "\n")
+    if m_plus_10_stride < 0:
+        raise ValueError(f"m_plus_10_stride must be >= 0, got {m_plus_10_stride}")
+    if m_plus_10_stride and batch.num_steps > 10:
+        from .evaluation.evaluate import m_plus_10_profile, pooled_over
+        from .evaluation.metrics import m_plus_10_starts
+
+        profile = m_plus_10_profile(model, batch, m_plus_10_starts(batch.num_steps)[::m_plus_10_stride])
+        columns = ["m", "m10_mse", "m10_pooled_mse"] + (["material_error"] if "material_error" in profile[0] else [])
+        table += ("\nm+10 per start m: the error at S_{m+10} after m point clouds and 10 blind steps (m10_mse), the "
+                  "same rollout's steps 1..m+10 pooled as the authors' code did (m10_pooled_mse)"
+                  + (", and the mean |estimate - Poisson's ratio| of the material carried after the m point clouds "
+                     "(material_error; none before the first)" if "material_error" in columns else "")
+                  + f"; over these m: m10_mse {sum(r['m10_mse'] for r in profile) / len(profile):.3g} (mean), "
+                  f"m10_pooled_mse {pooled_over(profile):.3g} (every step of these rollouts pooled)\n\n"
+                  + markdown_table(columns, [[str(r["m"])] + [f"{r[c]:.3g}" for c in columns[1:]] for r in profile])
                   + "\n")
     print(table)
     if output:

@@ -30,7 +30,7 @@ from ..reports import markdown_table
 from .metrics import (batch_iou, m_plus_10_mse, m_plus_10_pooled_mse, m_plus_10_starts, one_step_mse, rollout_mse,
                       rollout_volume_iou)
 from .rollout import StepFn, m_plus_10_rollouts, one_step_predictions, rollout
-from .schedules import Never, Schedule
+from .schedules import EveryK, Never, Schedule
 
 def split_trajectories(positions: Tensor, batch: TrajectoryBatch) -> list[Tensor]:
     """[T, sumN, d] -> B tensors [1, T, N_b, d] (the metrics' layout), on the CPU."""
@@ -83,6 +83,44 @@ def evaluate_batch(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Connec
         add("m10_pooled_mse", [m_plus_10_pooled_mse({m: p[b] for m, p in per_m.items()}, t, horizon=horizon)
                                for b, t in enumerate(true)])
     return out
+
+
+@torch.no_grad()
+def m_plus_10_profile(model, batch: TrajectoryBatch, starts: list[int], horizon: int = 10) -> list[dict]:
+    """Where a model's m+10 error comes from, per start m (`python -m ggns diagnose --m-plus-10-stride`):
+    {"m", "m10_mse": the error at S_{m+horizon} after m point clouds and `horizon` blind steps (mean
+    over trajectories, as `m10_mse`), "m10_pooled_mse": that rollout's steps 1..m+horizon pooled (as
+    `m10_pooled_mse` per m), and, for a model that carries a material estimate (`material_estimate`,
+    GGNSID), "material_error": the mean |estimate - Poisson's ratio| after the m point clouds}."""
+    connectivity, with_material = model.connectivity, model.with_material
+    preds = m_plus_10_rollouts(model.step, batch, connectivity, horizon, starts, with_material)
+    true = split_trajectories(batch.positions, batch)
+    rows = []
+    for m, pred in sorted(preds.items()):
+        per_traj = split_trajectories(pred, batch)
+        rows.append({"m": m,
+                     "m10_mse": sum(m_plus_10_mse({m: p}, t, horizon=horizon)[0] for p, t in zip(per_traj, true)) / len(true),
+                     "m10_pooled_mse": sum(m_plus_10_pooled_mse({m: p}, t, horizon=horizon)
+                                           for p, t in zip(per_traj, true)) / len(true)})
+    if hasattr(model, "material_estimate"):
+        position, state, estimates = batch.positions[0], None, {}
+        for t in range(max(starts) + 1):
+            if t in starts:
+                estimates[t] = None if state is None else model.material_estimate(state)
+            if t < max(starts):
+                nxt, state = rollout(model.step, batch, EveryK(1), connectivity, with_material, position, t, 1, state)
+                position = nxt[1]
+        for row in rows:
+            estimate = estimates[row["m"]]
+            row["material_error"] = (float("nan") if estimate is None
+                                     else (estimate - batch.material).abs().mean().item())
+    return rows
+
+
+def pooled_over(profile: list[dict], horizon: int = 10) -> float:
+    """`m10_pooled_mse` over the rollouts of a `m_plus_10_profile`: each m's pooled value weighs by its
+    m + horizon steps (the same as scoring those rollouts together)."""
+    return sum(r["m10_pooled_mse"] * (r["m"] + horizon) for r in profile) / sum(r["m"] + horizon for r in profile)
 
 
 def zero_motion_one_step_mse(batch: TrajectoryBatch) -> Tensor:

@@ -63,14 +63,14 @@ def test_two_seed_sweep_runs_skips_and_resumes(cli_data, tmp_path):
                                                              "one_step": never.name}
         assert chosen["never"]["selected_on"] == "val/rollout_mse_never"
         assert chosen["m10"]["selected_on"] == "val/m10_mse"
-        assert chosen["m10"]["metrics"] == ["m10_mse"] and sorted(chosen["never"]["metrics"]) == ["rollout_iou_never",
-                                                                                                   "rollout_mse_never"]
-        assert sorted(m) == ["m10_mse", "one_step_mse", "rollout_iou_never", "rollout_mse_never"]
+        assert chosen["m10"]["metrics"] == ["m10_mse", "m10_pooled_mse"]
+        assert sorted(chosen["never"]["metrics"]) == ["rollout_iou_never", "rollout_mse_never"]
+        assert sorted(m) == ["m10_mse", "m10_pooled_mse", "one_step_mse", "rollout_iou_never", "rollout_mse_never"]
         # ... by one test per checkpoint, each computing only its families' metrics
         parts = {path.parent.name: data for path, data in
                  ((p, json.loads(p.read_text())) for p in run.test_dir.glob("*/test_metrics.json"))}
         assert sorted(parts) == sorted([never.stem, m10.stem])
-        assert sorted(parts[m10.stem]) == ["checkpoint", "m10_mse", "one_step_mse"]
+        assert sorted(parts[m10.stem]) == ["checkpoint", "m10_mse", "m10_pooled_mse", "one_step_mse"]
         assert parts[m10.stem]["m10_mse"] == m["m10_mse"] and parts[never.stem]["one_step_mse"] == m["one_step_mse"]
         assert "| m10 | " + m10.name in (run.test_dir / "test_metrics.md").read_text()
     assert metrics[0]["rollout_mse_never"]["mean"] != metrics[1]["rollout_mse_never"]["mean"]  # seeds differ

@@ -173,3 +173,31 @@ def test_from_dict():
 def test_bad_config_names_field(make, field):
     with pytest.raises(ValueError, match=field):
         make()
+
+
+def test_without_open3d_training_imports_and_generation_names_what_is_missing(tmp_path):
+    """A machine without open3d (a GPU node, say) still imports everything that trains and evaluates;
+    generating a dataset fails at once with an error naming open3d, also with worker processes (a
+    failing worker initializer would make multiprocessing.Pool restart workers without end)."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = textwrap.dedent(f"""
+        import sys
+        sys.modules["open3d"] = None  # import open3d now raises ImportError
+        import ggns.cli, ggns.commands, ggns.data.module, ggns.bench.tradeoff, ggns.evaluation.callbacks
+        from ggns.config import load_config
+        from ggns.data.generate import generate
+        for workers in (1, 2):
+            try:
+                generate(load_config("plate_tiny", ["output={tmp_path}/w" + str(workers), "workers=" + str(workers)]),
+                         progress=False)
+            except ImportError as error:
+                assert "open3d is needed to raycast" in str(error), error
+                print("refused", workers)
+        """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["refused", "1", "refused", "2"]
+    assert not list(tmp_path.rglob("*.h5"))  # nothing written

@@ -192,3 +192,19 @@ def test_tissue_tradeoff_at_two_resolutions(tmp_path):
     assert all(math.isfinite(float(r["rollout_mse"])) and float(r["ms_per_step_1"]) > 0 for r in models)
     assert "_grid5" in models[1]["reference"] and "trained at resolution 10" in models[1]["reference"]
     assert (tmp_path / "out" / "tradeoff.png").is_file()
+
+
+def test_devices_choose_where_the_models_roll_out(checkpoints, tiny_data_dir, tmp_path):
+    """`--devices cpu` gives CPU rows only; `--devices cuda` without a GPU is refused before any work,
+    naming CUDA (tests/test_cuda.py covers the GPU itself)."""
+    from ggns.commands import bench_tradeoff
+
+    rows = bench_tradeoff("plate_tiny", {"ggns": str(checkpoints["ggns"])}, trajectories=1, schedules=["never"],
+                          rollout_trajectories=2, repeats=1, output_dir=str(tmp_path / "out"),
+                          data_dir=str(tiny_data_dir), simulator=False, devices=["cpu"])
+    assert len(rows) == 1 and rows[0]["device"].startswith("cpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="CUDA is not available"):
+            bench_tradeoff("plate_tiny", {"ggns": str(checkpoints["ggns"])}, output_dir=str(tmp_path / "gpu"),
+                           data_dir=str(tiny_data_dir), simulator=False, devices=["cuda"])
+        assert not (tmp_path / "gpu").exists()

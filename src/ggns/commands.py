@@ -179,7 +179,8 @@ def bench_tradeoff(dataset: str = "plate_small", checkpoint: dict[str, str] | No
                    grid_nodes: Sequence[int] | None = None, rollout_trajectories: int = 32, repeats: int = 3,
                    output_dir: str = "lightning_logs/tradeoff", resolution: Sequence[int] | None = None,
                    newton_tolerance: Sequence[float] | None = None, data_dir: str | None = None,
-                   threads: int | None = None, simulator: bool = True) -> list[dict]:
+                   threads: int | None = None, simulator: bool = True,
+                   devices: Sequence[str] | None = None) -> list[dict]:
     """Time per rollout step against rollout error: the simulator and model checkpoints (CSV + Pareto plot).
 
     Args:
@@ -197,7 +198,9 @@ def bench_tradeoff(dataset: str = "plate_small", checkpoint: dict[str, str] | No
         data_dir: the dataset's directory (default: the preset's output)
         threads: torch threads of the model rollouts on the CPU (default: torch's; the simulator always runs on 1)
         simulator: also the simulator's points (--no-simulator: the checkpoints only)
+        devices: where the model rollouts run, cpu and/or cuda (default: cpu, and cuda where torch sees a GPU)
     """
+    from .bench.timing import resolve_device
     from .bench.tradeoff import tradeoff
 
 
@@ -207,7 +210,8 @@ def bench_tradeoff(dataset: str = "plate_small", checkpoint: dict[str, str] | No
     return tradeoff(dataset, dict(checkpoint or {}), trajectories=trajectories, coarsen=tuple(coarsen),
                     output_dir=output_dir, schedules=tuple(schedules), batch=rollout_trajectories, repeats=repeats,
                     resolution=list(levels) if levels else None, newton_tolerances=tuple(newton_tolerance or ()),
-                    data_dir=data_dir, threads=threads, simulator=simulator)
+                    data_dir=data_dir, threads=threads, simulator=simulator,
+                    devices=[str(resolve_device(d)) for d in devices] if devices else None)
 
 
 def bench_stability(dataset: str = "plate", checkpoint: dict[str, str] | None = None, steps: int = 1000,

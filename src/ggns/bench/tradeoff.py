@@ -351,11 +351,12 @@ def pareto_plot(rows: list[dict], path: str | Path) -> Path:
 def tradeoff(dataset: str = "plate_small", checkpoints: dict | None = None, trajectories: int = 4, coarsen=(1, 2, 5),
              output_dir: str | Path = "lightning_logs/tradeoff", schedules=("every:1", "never"), batch: int = 32,
              repeats: int = 3, grid_nodes=None, data_dir: str | None = None, resolution=None,
-             newton_tolerances=(), threads: int | None = None, simulator: bool = True) -> list[dict]:
+             newton_tolerances=(), threads: int | None = None, simulator: bool = True, devices=None) -> list[dict]:
     """Simulator and model points at each mesh resolution level in `resolution` (an int, a list,
     or None for the preset's; `grid_nodes`: its older, plate-only name), the simulator's time-step
     coarsenings and Newton tolerances at each (`threads`: torch threads of the model rollouts;
-    `simulator` False: the models only); writes <output_dir>/tradeoff.csv and tradeoff.png and
+    `simulator` False: the models only; `devices`: where the models roll out, default the CPU and
+    CUDA where present); writes <output_dir>/tradeoff.csv and tradeoff.png and
     prints the table."""
     if not simulator and not checkpoints:
         raise ValueError("nothing to measure: no checkpoints and the simulator left out")
@@ -376,14 +377,15 @@ def tradeoff(dataset: str = "plate_small", checkpoints: dict | None = None, traj
                                      newton_tolerances=newton_tolerances)
         if checkpoints and (level is None or level == preset):
             rows += model_points(checkpoints, dataset, schedules, trajectories, batch=batch, repeats=repeats,
-                                 data_dir=data_dir, resolution=preset_resolution(config["scene"]), threads=threads)
+                                 data_dir=data_dir, resolution=preset_resolution(config["scene"]), threads=threads,
+                                 devices=devices)
         elif checkpoints:
             tests, directory = resolution_tests({**config, "output": data_dir or config["output"]}, level, trajectories)
             dim = int(getattr(SCENES[config["scene"]["name"]], "DIM", 2))
             rows += model_points(checkpoints, dataset, schedules, trajectories, batch=batch, repeats=repeats,
                                  tests=tests, reference=f"{directory} test (models trained at resolution {preset})",
                                  resolution=level, neighbour_scale=((level - 1) / (preset - 1)) ** dim,
-                                 threads=threads)
+                                 threads=threads, devices=devices)
         tradeoff_csv(rows, out / "tradeoff.csv")  # so far: a later level's failure keeps these rows
         print(f"resolution {'(preset)' if level is None else level}: {len(rows)} rows so far", flush=True)
     for row, on_front in zip(rows, pareto_mask(rows)):

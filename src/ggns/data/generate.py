@@ -184,6 +184,9 @@ def generate(config: dict, splits: list[str] | None = None, *, overwrite: bool =
     dim = SCENES[name].DIM
     pool, threads = None, torch.get_num_threads()
     if workers > 1:
+        # the sensor first built here: a missing open3d or a bad sensor fails in this process with its own
+        # error, not in a worker initializer, which multiprocessing.Pool would restart without end
+        DepthSensor(SensorConfig.from_dict(config["sensor"]))
         pool = mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(config,))
     else:
         _init_worker(config)  # in this process: its thread setting is restored below

@@ -13,11 +13,21 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 
 from ..geometry import boundary_facets
 
-o3c = o3d.core
+
+def _open3d():
+    """Open3D, imported on first use: only raycasting (making datasets) needs it; fitting, testing and
+    benchmarking on datasets already written do not, so a machine without it (a GPU cluster's node,
+    say) still trains."""
+    try:
+        import open3d
+    except ImportError as error:
+        raise ImportError("open3d is needed to raycast point clouds (generating a dataset); install it "
+                          "(scripts/setup.sh, or pip install open3d with the system library libusb-1.0), or "
+                          "train on a dataset generated elsewhere") from error
+    return open3d
 
 
 def _vec3(name: str, value) -> tuple[float, float, float]:
@@ -57,6 +67,8 @@ class PinholeCamera:
 
     def rays(self) -> np.ndarray:
         """Rays [height_px * width_px, 6] float32 as (origin, direction), row-major pixels."""
+        o3d = _open3d()
+        o3c = o3d.core
         rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
             fov_deg=self.fov_deg,
             center=o3c.Tensor(self.look_at, dtype=o3c.float32),
@@ -163,7 +175,7 @@ class DepthSensor:
         self.config = config
         rays = np.concatenate([cam.rays() for cam in config.cameras], axis=0)
         self._rays = rays.astype(np.float64)
-        self._rays_tensor = o3c.Tensor(np.ascontiguousarray(rays, dtype=np.float32))
+        self._rays_tensor = _open3d().core.Tensor(np.ascontiguousarray(rays, dtype=np.float32))
 
     def observe(
         self,
@@ -214,6 +226,8 @@ class DepthSensor:
                                  f"{vertices.shape}, {triangles.shape}")
             meshes.append((vertices, triangles))
 
+        o3d = _open3d()
+        o3c = o3d.core
         scene = o3d.t.geometry.RaycastingScene()
         ids = [
             scene.add_triangles(

@@ -1,0 +1,140 @@
+"""The CUDA paths: graphs, every simulator, training and the command line on a GPU give what they give on
+the CPU. Skipped where torch sees no GPU (this project's CI); run on a GPU machine by scripts/gpu_check.sh,
+which writes what it saw to docs/results/gpu_check/. Data: the `cli_data` fixture (plate_tiny, T = 12),
+copied from GGNS_TEST_DATA where the machine has no open3d to raycast it.
+
+Tolerances: message passing sums with atomic adds on a GPU (`index_add_`), in another order than the
+CPU's, so float32 results agree to rounding, not bit for bit (docs/robustness.md); rollouts compound it."""
+from __future__ import annotations
+
+import copy
+import json
+import math
+import sys
+
+import pytest
+import torch
+
+from ggns.batch import TrajectoryBatch
+from ggns.checkpoints import read_checkpoint
+from ggns.config import CONF_DIR
+from ggns.data.generate import split_path
+from ggns.data.module import WindowDataset, collate
+from ggns.data.schema import read_trajectories
+from ggns.evaluation.schedules import EveryK, Never
+from ggns.graphs.state import state_graph
+from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared, load_simulator
+from conftest import TINY12, make
+
+pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (scripts/gpu_check.sh)")
+
+ALL_MODELS = (GGNS, GGNSLSTM, MGN, MGNM, MGNShared, GGNSM, GGNSID)
+CUDA = torch.device("cuda")
+
+
+@pytest.fixture(scope="module")
+def splits(cli_data):
+    return {split: read_trajectories(split_path(cli_data, split)) for split in ("train", "val", "test")}
+
+
+def edges(graph) -> dict:
+    """{edge type: sorted (source, target) pairs on the CPU}."""
+    out = {}
+    for edge_type in graph.edge_types:
+        index = graph[edge_type].edge_index.cpu()
+        order = torch.argsort(index[0] * (index.max() + 1) + index[1])
+        out[edge_type] = index[:, order]
+    return out
+
+
+@pytest.mark.parametrize("cls", [GGNS, MGNM])
+@pytest.mark.parametrize("use_points", [True, False])
+def test_state_graphs_on_cuda_hold_the_cpu_edges_and_features(cls, use_points, splits):
+    model = make(cls)
+    cpu = TrajectoryBatch.from_trajectories(splits["val"])
+    gpu = TrajectoryBatch.from_trajectories(splits["val"], device=CUDA)
+    use = use_points and model.uses_points
+    for t in range(cpu.num_steps - 1):
+        a = state_graph(cpu, t, cpu.positions[t], use, model.connectivity, model.with_material)
+        b = state_graph(gpu, t, gpu.positions[t], use, model.connectivity, model.with_material)
+        assert a.node_types == b.node_types and a.edge_types == b.edge_types
+        ea, eb = edges(a), edges(b)
+        for edge_type in ea:  # radius search on the GPU: the same neighbours
+            assert torch.equal(ea[edge_type], eb[edge_type]), (t, edge_type)
+        for node_type in a.node_types:
+            assert b[node_type].x.device.type == "cuda"
+            torch.testing.assert_close(b[node_type].x.cpu(), a[node_type].x, atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("cls", ALL_MODELS, ids=lambda c: c.__name__)
+def test_every_simulator_trains_and_rolls_out_on_cuda_as_on_cpu(cls, splits):
+    torch.manual_seed(0)
+    model = make(cls, latent=32, blocks=2, noise_field_std=0.01)  # the CPU presets' smooth field too
+    windows = WindowDataset(splits["train"], model.window)
+    batch = collate([windows[i] for i in range(min(8, len(windows)))])
+    model.fit_normalizers([batch])
+    gpu_model = copy.deepcopy(model).to(CUDA)
+    gpu_batch = batch.to(CUDA)
+    with torch.no_grad():  # the loss of the same window, without training noise
+        cpu_loss, gpu_loss = model.window_loss(batch, train=False), gpu_model.window_loss(gpu_batch, train=False)
+    assert math.isclose(gpu_loss.item(), cpu_loss.item(), rel_tol=1e-4), (cpu_loss, gpu_loss)
+
+    # training on the GPU: noise (the field too, for the GGNS family), backward, Adam; all on the device
+    optimizer = gpu_model.configure_optimizers()["optimizer"]
+    for _ in range(3):
+        optimizer.zero_grad()
+        loss = gpu_model.window_loss(gpu_batch, train=True)
+        loss.backward()
+        assert torch.isfinite(loss) and loss.device.type == "cuda"
+        assert all(p.grad is None or (p.grad.device.type == "cuda" and torch.isfinite(p.grad).all())
+                   for p in gpu_model.parameters())
+        optimizer.step()
+
+    # the paper's metrics of the same weights on both devices
+    trained = copy.deepcopy(gpu_model).cpu()
+    val = TrajectoryBatch.from_trajectories(splits["val"])
+    kwargs = dict(iou=False, m_plus_10_stride=5)
+    with torch.no_grad():
+        on_cpu = trained.evaluate(val, [EveryK(1), EveryK(5), Never()], **kwargs)
+        on_gpu = gpu_model.evaluate(val.to(CUDA), [EveryK(1), EveryK(5), Never()], **kwargs)
+    assert set(on_cpu) == set(on_gpu)
+    for name, value in on_cpu.items():
+        assert torch.isfinite(value).all(), name
+        torch.testing.assert_close(on_gpu[name].cpu(), value, rtol=1e-3, atol=1e-9, msg=name)
+
+
+def cli(config: str, data_dir, logs, version: str, *extra) -> list[str]:
+    return ["--config", str(CONF_DIR / "plate" / f"{config}.yaml"), "--data.dataset", str(data_dir / TINY12),
+            "--data.data_dir", str(data_dir), "--data.batch_size", "8", "--data.generate_missing", "false",
+            "--trainer.logger.init_args.save_dir", str(logs), "--trainer.logger.init_args.version", version,
+            "--model.init_args.latent", "16", "--model.init_args.blocks", "2",
+            "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false", *extra]
+
+
+@pytest.mark.parametrize("config", ["ggns", "mgn_m"])
+def test_fit_on_the_gpu_and_test_on_both_devices(config, cli_data, tmp_path):
+    """`fit` on the GPU (validation rollouts, checkpoints per metric family), then `test` of its last
+    checkpoint on the GPU and on the CPU: the same paper metrics; the checkpoint is data a CPU reads."""
+    from ggns.__main__ import main
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(sys, "argv", ["ggns"])
+        main(["fit", *cli(config, cli_data, tmp_path, "fit", "--trainer.accelerator", "gpu", "--trainer.devices", "1",
+                          "--trainer.max_epochs", "2", "--trainer.limit_train_batches", "2",
+                          "--trainer.check_val_every_n_epoch", "1", "--trainer.limit_val_batches", "1")])
+        last = tmp_path / config / "fit" / "checkpoints" / "last.ckpt"
+        checkpoint = read_checkpoint(last)  # weights_only, on the CPU
+        assert checkpoint["global_step"] == 4
+        assert all(t.device.type == "cpu" for t in checkpoint["state_dict"].values())
+        metrics = {}
+        for accelerator in ("gpu", "cpu"):
+            main(["test", *cli(config, cli_data, tmp_path, f"test_{accelerator}", "--trainer.accelerator", accelerator,
+                               "--trainer.devices", "1", "--ckpt_path", str(last))])
+            text = (tmp_path / config / f"test_{accelerator}" / "test_metrics.json").read_text()
+            metrics[accelerator] = {k: v["mean"] for k, v in json.loads(text).items()
+                                    if isinstance(v, dict) and "mean" in v and "seconds" not in k}
+    assert metrics["gpu"].keys() == metrics["cpu"].keys() and "rollout_mse_never" in metrics["cpu"]
+    for name, value in metrics["cpu"].items():
+        assert math.isclose(metrics["gpu"][name], value, rel_tol=1e-3, abs_tol=1e-9), (name, value, metrics["gpu"][name])
+    model = load_simulator(last, map_location="cuda")
+    assert next(model.parameters()).device.type == "cuda"

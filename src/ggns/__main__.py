@@ -14,6 +14,7 @@
               `bench tradeoff`: time per rollout step against rollout error, CSV + Pareto plot;
               `bench learning`: learning curves of model variants per CPU-second, table + plots)
     demo      the README's main job on a small embedded default
+    paper     sweep summaries in the paper's layout, the paper's figures beside them
 
 A bad input (missing file or preset, out-of-range value, unreadable dataset or checkpoint) or a
 reported numerical failure ends with one line on stderr, `error: ...`, and exit status 2;

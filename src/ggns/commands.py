@@ -516,6 +516,25 @@ def demo(task: Literal["plate", "tissue"] = "plate", output: str = "lightning_lo
     return run_demo(task, output, minutes=minutes, test_trajectories=test_trajectories, data=data, train=train)
 
 
+def paper(task: Literal["plate", "tissue", "cavity"] = "plate", summary: dict[str, str] | None = None,
+          output: str | None = None) -> str:
+    """Our sweep results in the paper's layout, the paper's figures (conf/paper/ggns_iclr2023.yaml) beside them.
+
+    Args:
+        task: the paper's task the sweeps ran
+        summary: a sweep's summary.csv, as label=path (repeatable; rows labelled when several)
+        output: also write the markdown to this file
+    """
+    from .experiments.paper import paper_table
+    from .reports import write_text
+
+    text = paper_table(task, dict(summary or {}))
+    print(text)
+    if output:
+        write_text(output, text + "\n")
+    return text
+
+
 COMMANDS = {
     "generate": generate,
     "import-reference": import_reference,
@@ -529,4 +548,5 @@ COMMANDS = {
     "sweep": sweep,
     "pretrained": {"list": pretrained_list, "train": pretrained_train, "package": pretrained_package},
     "demo": demo,
+    "paper": paper,
 }

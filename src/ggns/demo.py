@@ -32,6 +32,7 @@ from .evaluation.evaluate import MetricTable  # noqa: E402
 from .evaluation.pictures import error_curves, rollout_animation, rollout_picture, rollout_series  # noqa: E402
 from .evaluation.schedules import Never, parse_schedule  # noqa: E402
 from .experiments.curves import read_scalars  # noqa: E402
+from .experiments.paper import paper_figures  # noqa: E402
 from .pretrained import check_data, load  # noqa: E402
 from .reports import markdown_table, write_json, write_text  # noqa: E402
 from .viz import plot_error_over_time, save_figure  # noqa: E402
@@ -43,7 +44,9 @@ TASKS = ("plate", "tissue")
 def load_demo(task: str) -> dict:
     if task not in TASKS:
         raise ValueError(f"unknown demo task {task!r}; expected one of {TASKS}")
-    return OmegaConf.to_container(OmegaConf.load(CONF_DIR / "demo" / f"{task}.yaml"), resolve=True)
+    spec = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "demo" / f"{task}.yaml"), resolve=True)
+    spec.setdefault("paper", paper_figures(task))  # the paper's test figures, for the report
+    return spec
 
 
 def evaluate_pretrained(spec: dict, data: SimulationDataModule) -> tuple[dict, dict, TrajectoryBatch]:

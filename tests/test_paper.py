@@ -67,3 +67,14 @@ def test_the_command_writes_the_table_and_refuses_what_is_not_a_summary(tmp_path
     with pytest.raises(SystemExit) as exit_info:
         main(["paper", "--task", "plate", "--summary", f"x={bad}"])
     assert exit_info.value.code == 2 and "not a sweep summary" in capsys.readouterr().err
+
+
+def test_summaries_of_disjoint_seeds_pool_into_one_mean_and_sample_std(tmp_path):
+    one, two = tmp_path / "seed0.csv", tmp_path / "seed12.csv"
+    one.write_text("model,metric,mean,std,seeds\nggns,rollout_mse_k1,1.0,nan,1\nstatic,one_step_mse,4.0,nan,1\n")
+    two.write_text("model,metric,mean,std,seeds\nggns,rollout_mse_k1,4.0,1.4142135623730951,2\nstatic,one_step_mse,4.0,nan,1\n")
+    pooled = read_summary(f"{one},{two}")
+    mean, std, seeds = pooled["ggns"]["rollout_mse_k1"]
+    assert seeds == 3 and mean == pytest.approx(3.0)  # seeds 1, 3, 5
+    assert std == pytest.approx(2.0)  # the sample std of (1, 3, 5)
+    assert pooled["static"]["one_step_mse"] == (4.0, pytest.approx(float("nan"), nan_ok=True), 1)  # not pooled

@@ -522,7 +522,7 @@ def paper(task: Literal["plate", "tissue", "cavity"] = "plate", summary: dict[st
 
     Args:
         task: the paper's task the sweeps ran
-        summary: a sweep's summary.csv, as label=path (repeatable; rows labelled when several)
+        summary: a sweep's summary.csv, as label=path (repeatable; rows labelled when several); label=a.csv,b.csv pools runs of one sweep on disjoint seeds
         output: also write the markdown to this file
     """
     from .experiments.paper import paper_table

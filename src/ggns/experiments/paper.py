@@ -29,6 +29,7 @@ LABELS = {"ggns": "GGNS", "ggns_lstm": "GGNS+LSTM", "ggns_id": "GGNSID", "ggns_m
           "ggns_partition": "GGNS, per-type processor"}
 PAPER_MODELS = ("ggns", "ggns_lstm", "mgn_m", "mgn")
 NOT_ROWS = ("alpha_shapes",)  # baselines with generated-mesh metrics only
+NOT_POOLED = ("static", "alpha_shapes")  # deterministic baselines: one value, whatever the seeds
 
 
 def paper_figures(task: str, path: str | Path = PAPER_FIGURES) -> dict[str, dict[str, float]]:
@@ -41,9 +42,7 @@ def paper_figures(task: str, path: str | Path = PAPER_FIGURES) -> dict[str, dict
             for metric, models in figures.items() if metric in COLUMNS}
 
 
-def read_summary(path: str | Path) -> dict[str, dict[str, tuple[float, float, int]]]:
-    """{model: {metric: (mean, std, seeds)}} of a sweep's summary.csv."""
-    path = Path(path)
+def _read_one(path: Path) -> dict[str, dict[str, tuple[float, float, int]]]:
     if not path.is_file():
         raise FileNotFoundError(f"no sweep summary {path} (`python -m ggns sweep --config ... --aggregate-only` writes it)")
     out: dict[str, dict[str, tuple[float, float, int]]] = {}
@@ -55,6 +54,33 @@ def read_summary(path: str | Path) -> dict[str, dict[str, tuple[float, float, in
         for row in reader:
             std = float(row["std"]) if row["std"] not in ("", "nan") else math.nan
             out.setdefault(row["model"], {})[row["metric"]] = (float(row["mean"]), std, int(row["seeds"]))
+    return out
+
+
+def _pool(parts: list[tuple[float, float, int]]) -> tuple[float, float, int]:
+    """Seed means and stds of disjoint seed sets pooled into the mean and sample std over all seeds."""
+    total = sum(n for _, _, n in parts)
+    mean = sum(m * n for m, _, n in parts) / total
+    if total < 2:
+        return mean, math.nan, total
+    within = sum((n - 1) * s * s for _, s, n in parts if n > 1 and not math.isnan(s))
+    between = sum(n * (m - mean) ** 2 for m, _, n in parts)
+    return mean, math.sqrt((within + between) / (total - 1)), total
+
+
+def read_summary(paths: str | Path | list) -> dict[str, dict[str, tuple[float, float, int]]]:
+    """{model: {metric: (mean, std, seeds)}} of a sweep's summary.csv; several summaries (a list, or one
+    string of comma-separated paths) of the same sweep run on disjoint seeds are pooled over all their
+    seeds (a deterministic baseline, `static`, is taken from the first). Adds `one_step_ratio`, the
+    one-step MSE over that of predicting no motion, where the summary has the `static` row."""
+    if isinstance(paths, (str, Path)):
+        paths = str(paths).split(",")
+    parts = [_read_one(Path(p)) for p in paths]
+    out: dict[str, dict[str, tuple[float, float, int]]] = {}
+    for model in dict.fromkeys(m for part in parts for m in part):
+        metrics = dict.fromkeys(k for part in parts for k in part.get(model, {}))
+        values = {k: [part[model][k] for part in parts if k in part.get(model, {})] for k in metrics}
+        out[model] = {k: (v[0] if model in NOT_POOLED else _pool(v)) for k, v in values.items()}
     no_motion = out.get("static", {}).get("one_step_mse")
     if no_motion:  # the one-step MSE of predicting no motion on the same test trajectories
         for model, metrics in out.items():

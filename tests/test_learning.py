@@ -199,3 +199,20 @@ def test_every_variant_of_the_plate_reach_learning_files_parses(name, tmp_path):
             assert model.hparams.blocks == int(run.model.rsplit("_", 1)[1])
         if run.model.endswith("field_decay"):
             assert model.hparams.noise_field_decay_steps == 8000
+
+
+def test_every_variant_of_the_plate_lstm_learning_file_parses(tmp_path):
+    """Issue 24's GGNS+LSTM budget file: each variant builds a per-type GGNS+LSTM with its window, batch
+    and truncated backpropagation (nothing trained)."""
+    from ggns.cli import build_cli
+    from ggns.models.simulators import GGNSLSTM
+
+    for run in variant_runs(load_learning("plate_cpu_lstm", [f"output={tmp_path}"])):
+        argv = ["--config", run.config, "--seed_everything", str(run.seed),
+                "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
+        cli = build_cli(argv, run=False)
+        model = cli.model
+        assert isinstance(model, GGNSLSTM) and model.edge_partition
+        assert model.window == int(run.model.split("_")[1])
+        assert cli.datamodule.batch_size == (int(run.model.split("batch_")[1][0]) if "batch" in run.model else 8)
+        assert model.backprop_steps == (int(run.model.split("backprop_")[1]) if "backprop" in run.model else None)

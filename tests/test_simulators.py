@@ -17,8 +17,8 @@ from ggns.evaluation.evaluate import m_plus_10_profile, pooled_over
 from ggns.evaluation.metrics import m_plus_10_pooled_mse
 from ggns.evaluation.rollout import RolloutError, m_plus_10_rollouts, rollout
 from ggns.evaluation.schedules import EveryK, FirstM, Never
-from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared, linear_decay
-from conftest import T, first_graph, make, normalizer_buffers, quiet_trainer
+from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared, linear_decay, load_simulator
+from conftest import T, first_graph, make, normalizer_buffers, quiet_trainer, save_untrained
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -269,6 +269,36 @@ def test_lstm_window_loss_carries_state_through_the_window(trajs):
             whole = model.window_loss(window, train=False)
             parts = torch.stack([model.window_loss(s, train=False) for s in singles]).mean()
         assert torch.isclose(whole, parts, rtol=1e-5).item() != carries, (cls.__name__, whole, parts)
+
+
+def test_lstm_truncated_backpropagation_trains_only_the_last_transitions(trajs, tmp_path):
+    """`backprop_steps=1` on a 3-transition window: the loss is the last transition's, with the LSTM
+    state that the first two carried forward (the full window's last term), and it trains the LSTM;
+    `backprop_steps=window` is the paper's loss; the setting survives a checkpoint."""
+    window = collate([WindowDataset(trajs["train"], 3)[0]])
+    full = make(GGNSLSTM, window=3, point_probability=1.0, noise_std=0.0)
+    full.fit_normalizers([window])
+    truncated = make(GGNSLSTM, window=3, point_probability=1.0, noise_std=0.0, backprop_steps=1)
+    truncated.load_state_dict(full.state_dict())
+    same = make(GGNSLSTM, window=3, point_probability=1.0, noise_std=0.0, backprop_steps=3)
+    same.load_state_dict(full.state_dict())
+    free = ~window.fixed
+    with torch.no_grad():
+        state, terms = None, []
+        for graph, target in full.training_graphs(window, train=False):
+            out, state = full.predict_normalized(graph, state)
+            terms.append((out[free] - full.target_normalizer(target[free])).square().mean())
+        torch.testing.assert_close(full.window_loss(window, train=False), torch.stack(terms).mean())
+        torch.testing.assert_close(same.window_loss(window, train=False), torch.stack(terms).mean())
+    loss = truncated.window_loss(window, train=False)
+    torch.testing.assert_close(loss.detach(), terms[-1])
+    loss.backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in truncated.lstm.parameters())
+    with pytest.raises(ValueError, match="backprop_steps must lie in"):
+        make(GGNSLSTM, window=3, backprop_steps=4)
+    path = tmp_path / "lstm.ckpt"
+    save_untrained(truncated, path)
+    assert load_simulator(path).backprop_steps == 1
 
 
 def test_training_loss_by_point_clouds(trajs):

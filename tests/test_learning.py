@@ -216,3 +216,19 @@ def test_every_variant_of_the_plate_lstm_learning_file_parses(tmp_path):
         assert model.window == int(run.model.split("_")[1])
         assert cli.datamodule.batch_size == (int(run.model.split("batch_")[1][0]) if "batch" in run.model else 8)
         assert model.backprop_steps == (int(run.model.split("backprop_")[1]) if "backprop" in run.model else None)
+
+
+def test_every_variant_of_the_plate_m10_learning_file_parses(tmp_path):
+    """Issue 24's m+10 file: per-type GGNSID with the field on point-cloud samples only and other
+    imputation probabilities (nothing trained)."""
+    from ggns.cli import build_cli
+    from ggns.models.simulators import GGNSID
+
+    for run in variant_runs(load_learning("plate_cpu_m10", [f"output={tmp_path}"])):
+        argv = ["--config", run.config, "--seed_everything", str(run.seed),
+                "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
+        model = build_cli(argv, run=False).model
+        assert isinstance(model, GGNSID) and model.edge_partition
+        assert model.hparams.noise_field_points_only == run.model.startswith("field_points_only")
+        probability = float(run.model.split("points_")[-1]) if "points_0" in run.model else 0.5
+        assert model.hparams.point_probability == probability

@@ -81,14 +81,17 @@ def test_targets_hold_and_fail():
         t[model]["one_step_mse"] = stat(value)
     t["alpha_shapes"] = {"rollout_iou_k1": stat(0.9)}
     targets = check_targets(t)
-    assert [f.holds for f in targets] == [True] * 3
+    assert [f.holds for f in targets] == [True] * 5
+    assert "10.00x" in targets[3].evidence and "GGNS 1e-05, MGN(M) 2e-05" in targets[4].evidence
     assert "ggns 0.1" in targets[0].evidence and "static 1" not in targets[0].evidence  # the reference is no model
     assert "50.00x" in targets[2].evidence  # 5e-3 / 1e-4
     assert findings_markdown(targets, head="target").startswith("| target |")
     t["mgn"]["one_step_mse"] = stat(3e-6)  # 0.3x no motion
     t["ggns"]["rollout_mse_never"] = stat(8e-4)  # below k = 10
     t["mgn"]["rollout_mse_never"] = stat(9e-4)  # 9x GGNS k = 1
-    assert [f.holds for f in check_targets(t)] == [False] * 3
+    t["mgn_m"]["rollout_mse_never"] = stat(2.9e-4)  # 2.9x GGNS k = 1
+    t["mgn_m"]["m10_mse"] = stat(1e-5)  # equal to GGNS's: not below
+    assert [f.holds for f in check_targets(t)] == [False] * 5
     del t["static"]
     assert check_targets(t)[0].holds is None
-    assert [f.holds for f in check_targets({})] == [None] * 3
+    assert [f.holds for f in check_targets({})] == [None] * 5

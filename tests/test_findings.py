@@ -80,8 +80,10 @@ def test_targets_hold_and_fail():
     for model, value in (("ggns", 1e-6), ("ggns_lstm", 2e-6), ("mgn_m", 1e-6), ("mgn", 2e-6), ("static", 1e-5)):
         t[model]["one_step_mse"] = stat(value)
     t["alpha_shapes"] = {"rollout_iou_k1": stat(0.9)}
+    t["ggns"]["m10_pooled_mse"], t["mgn_m"]["m10_pooled_mse"] = stat(4e-6), stat(5e-6)
     targets = check_targets(t)
-    assert [f.holds for f in targets] == [True] * 5
+    assert [f.holds for f in targets] == [True] * 6
+    assert "GGNS 4e-06, MGN(M) 5e-06" in targets[5].evidence
     assert "10.00x" in targets[3].evidence and "GGNS 1e-05, MGN(M) 2e-05" in targets[4].evidence
     assert "ggns 0.1" in targets[0].evidence and "static 1" not in targets[0].evidence  # the reference is no model
     assert "50.00x" in targets[2].evidence  # 5e-3 / 1e-4
@@ -91,7 +93,10 @@ def test_targets_hold_and_fail():
     t["mgn"]["rollout_mse_never"] = stat(9e-4)  # 9x GGNS k = 1
     t["mgn_m"]["rollout_mse_never"] = stat(2.9e-4)  # 2.9x GGNS k = 1
     t["mgn_m"]["m10_mse"] = stat(1e-5)  # equal to GGNS's: not below
-    assert [f.holds for f in check_targets(t)] == [False] * 5
+    t["mgn_m"]["m10_pooled_mse"] = stat(3e-6)  # below GGNS's
+    assert [f.holds for f in check_targets(t)] == [False] * 6
     del t["static"]
     assert check_targets(t)[0].holds is None
-    assert [f.holds for f in check_targets({})] == [None] * 5
+    del t["ggns"]["m10_pooled_mse"]
+    assert check_targets(t)[5].holds is None
+    assert [f.holds for f in check_targets({})] == [None] * 6

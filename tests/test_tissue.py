@@ -122,6 +122,19 @@ def test_fit_and_test_through_the_cli_on_tiny_tissue(tiny, tmp_path, model):
         assert len(list((tmp_path / "export" / "points").glob("*.vtu"))) == 6  # steps 0, 2, .., 10
 
 
+def test_per_type_ggnsid_fits_and_tests_on_tiny_tissue(tiny, tmp_path):
+    """conf/learning/tissue_cpu_m10.yaml's GGNSID on the tissue: the per-type processor and the material
+    estimator train and roll out in 3D through the CLI, and the checkpoint loads back as GGNSID."""
+    from ggns.models.simulators import GGNSID, load_simulator
+
+    config, _ = tiny
+    extra = ["--model.class_path", "ggns.models.simulators.GGNSID", "--model.init_args.type_partition", "true"]
+    checkpoint, metrics = fit_and_test_3d("tissue", "ggns", config["output"], tmp_path, latent=16, blocks=2, extra=extra)
+    assert "rollout_mse_k1" in metrics
+    model = load_simulator(checkpoint)
+    assert isinstance(model, GGNSID) and model.edge_partition and model.hparams.dim == 3
+
+
 def test_static_reference_row_scores_volumes_in_3d(tiny):
     """The sweep's static row (mesh held at S_0) on tissue: MSE and the volume IoU, which is 1 at
     rest and below 1 once the gripper has deformed the block."""

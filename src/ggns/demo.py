@@ -230,7 +230,8 @@ def write_report(spec: dict, task: str, results: dict, sentence: str, figures: l
              f"({', '.join(f'`{n}`' for n in spec['pretrained'].values())}) rolled out from the initial state.", "",
              sentence, "",
              "Full rollout MSE (`rollout_mse_k<K>`: a point cloud every K steps; `never`: none after S_0), the paper's "
-             "m+10-step MSE, the one-step MSE and the IoU of the predicted mesh, mean ± std over the test "
+             "m+10-step MSE (`m10_mse` at S_m+10; `m10_pooled_mse` over every step of each rollout, the paper's reading), "
+             "the one-step MSE and the IoU of the predicted mesh, mean ± std over the test "
              "trajectories, in squared task-space units; MGN never sees point clouds. The paper's columns are its "
              "test figures (full rollouts read off its bar charts, `-` where it gives none).", "",
              results_table(spec, results), ""]

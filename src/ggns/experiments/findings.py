@@ -9,7 +9,8 @@ checked (holds=None), never as holding. The checks are our reading of the paper'
 
 1. full-rollout MSE orders GGNS k=1 < GGNS k=2 < MGN(M) < MGN (MGN and MGN(M): `_never`);
 2. GGNS k=2 is at least 10x below MGN;
-3. the m+10-step MSE orders GGNS < MGN(M) < MGN;
+3. the m+10-step MSE orders GGNS < MGN(M) < MGN, scored as the paper's is: every step of each m+10
+   rollout pooled (`m10_pooled_mse`; conf/paper/ggns_iclr2023.yaml says how its numbers show it);
 4. the normalized benefit of point clouds falls as k grows (strictly, over k = 1, 2, 5, 10); when
    GGNS k=1 is not below MGN there is no benefit to normalize and the finding does not hold;
 5. GGNS+LSTM is not better than GGNS: at every k both have, the LSTM's mean is not below the
@@ -74,8 +75,9 @@ def check_findings(table: Table, ks=(1, 2, 5, 10)) -> list[Finding]:
         findings.append(Finding("GGNS k=2 at least 10x below MGN", ratio >= 10.0,
                                 f"MGN / GGNS k=2 = {mgn['mean']:.3g} / {k2['mean']:.3g} = {ratio:.2f}x"))
 
-    holds, ev = _chain(table, [("GGNS", "ggns", "m10_mse"), ("MGN(M)", "mgn_m", "m10_mse"), ("MGN", "mgn", "m10_mse")])
-    findings.append(Finding("m+10-step MSE: GGNS < MGN(M) < MGN", holds, ev))
+    holds, ev = _chain(table, [("GGNS", "ggns", "m10_pooled_mse"), ("MGN(M)", "mgn_m", "m10_pooled_mse"),
+                               ("MGN", "mgn", "m10_pooled_mse")])
+    findings.append(Finding("m+10-step MSE (pooled over each rollout, the paper's): GGNS < MGN(M) < MGN", holds, ev))
 
     name = "normalized benefit of point clouds falls as k grows"
     try:

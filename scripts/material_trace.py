@@ -1,0 +1,50 @@
+"""GGNSID's material estimate along rollouts under point-cloud schedules (issue 24, the k=5 question):
+python scripts/material_trace.py CHECKPOINT [--dataset plate --split test --trajectories 27 --schedules 1,5]
+
+Rolls the checkpoint out one step at a time from S_0 under "a point cloud every k steps" for each k and
+prints, every 5 steps, the mean |estimate - Poisson's ratio| over the trajectories (GGNSID; nan for a
+model without an estimate) and the position MSE at that state (mean over nodes and coordinates). A
+diagnostic, not a library command."""
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+from ggns.batch import TrajectoryBatch
+from ggns.data.module import SimulationDataModule
+from ggns.evaluation.rollout import rollout
+from ggns.evaluation.schedules import EveryK
+from ggns.pretrained import load_model
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("checkpoint")
+    parser.add_argument("--dataset", default="plate")
+    parser.add_argument("--split", default="test")
+    parser.add_argument("--trajectories", type=int, default=27)
+    parser.add_argument("--schedules", default="1,5", help="comma-separated k")
+    args = parser.parse_args()
+    model = load_model(args.checkpoint, map_location="cpu")
+    carries = hasattr(model, "material_estimate")  # GGNSID; any other model: the position error only
+    data = SimulationDataModule(args.dataset, generate_missing=False)
+    batch = TrajectoryBatch.from_trajectories(data.trajectories(args.split)[:args.trajectories])
+    last = batch.num_steps - 1
+    print("| k | step | material error | position MSE |\n|---|---|---|---|")
+    with torch.no_grad():
+        for k in (int(x) for x in args.schedules.split(",")):
+            position, state = batch.positions[0], None
+            for t in range(last):
+                nxt, state = rollout(model.step, batch, EveryK(k), model.connectivity, model.with_material,
+                                     position, t, 1, state)
+                position = nxt[1]
+                if (t + 1) % 5 == 0:
+                    error = ((model.material_estimate(state) - batch.material).abs().mean().item()
+                             if carries and state is not None else float("nan"))
+                    mse = ((position - batch.positions[t + 1]) ** 2).mean().item()
+                    print(f"| {k} | {t + 1} | {error:.3f} | {mse:.2e} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import math
 
-from ggns.experiments.findings import check_findings, check_targets, findings_markdown
+import pytest
+
+from ggns.experiments.findings import as_ggns, check_findings, check_targets, findings_markdown
 
 
 def stat(mean, std=0.0):
@@ -101,3 +103,16 @@ def test_targets_hold_and_fail():
     del t["ggns"]["m10_pooled_mse"]
     assert check_targets(t)[5].holds is None
     assert [f.holds for f in check_targets({})] == [None] * 6
+
+
+def test_a_variant_of_ggns_is_judged_in_its_place():
+    t = paper_like()
+    variant = {name: stat(2 * v["mean"], v["std"]) for name, v in t["ggns"].items()}  # twice GGNS's error
+    variant["rollout_mse_k1"] = stat(5e-4)  # 2x MGN(M) (1e-3): not 3x below it
+    t["ggns_id"] = variant
+    judged = as_ggns(t, "ggns_id")
+    assert judged["ggns"] is variant and "ggns_id" not in judged and judged["ggns (the sweep's)"] is t["ggns"]
+    assert check_targets(judged)[3].holds is False and "2.00x" in check_targets(judged)[3].evidence
+    assert check_targets(t)[3].holds is True  # the table itself is unchanged
+    with pytest.raises(KeyError, match="'ggns_pt' not in the table"):
+        as_ggns(t, "ggns_pt")

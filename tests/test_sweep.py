@@ -168,6 +168,11 @@ def test_checkpoint_fallbacks_of_older_and_unvalidated_fits(tmp_path):
     summary = summarize(sweep, log=lambda message: None).read_text()
     assert ("| mgn | 0 | never | best-epoch=3.ckpt | 0 / 0 | - | tested before per-family selection (one checkpoint "
             "for every family) | - |") in summary
+    assert "as GGNS" not in summary
+    # a model named in findings_ggns is judged in GGNS's place: its rollout_mse_never is GGNS's "never"
+    summary = summarize({**sweep, "findings_ggns": ["mgn"]}, log=lambda message: None).read_text()
+    section = summary.split("## The paper's findings and the project's targets with `mgn` as GGNS")[1]
+    assert "| GGNS rollout MSE: k=1 < k=2 < k=5 < k=10 < never | not checked | missing: k=1, k=2, k=5, k=10 |" in section
     # a family without its own best falls back to another family's, and says so
     shutil.copy(directory / "last.ckpt", directory / "best-never-step=5.ckpt")
     selections = run.checkpoints()
@@ -186,6 +191,10 @@ def test_a_single_array_task_and_bad_sweeps(tiny_data_dir, tmp_path):
         load_sweep(bad)
     bad.write_text(yaml.safe_dump({"output": "x", "seeds": [0], "models": {"mgn": {"config": "nope.yaml"}}}))
     with pytest.raises(FileNotFoundError, match="nope.yaml"):
+        load_sweep(bad)
+    bad.write_text(yaml.safe_dump({"output": "x", "seeds": [0], "findings_ggns": ["ggns_id"],
+                                   "models": {"mgn": {"config": str(CONF_DIR / "plate" / "mgn.yaml")}}}))
+    with pytest.raises(ValueError, match=r"findings_ggns names \['ggns_id'\], which are not models"):
         load_sweep(bad)
     with pytest.raises(ValueError, match=r"initial_mesh names models \['ggns'\]"):
         baseline_spec({**sweep, "baselines": {"initial_mesh": ["ggns"]}})

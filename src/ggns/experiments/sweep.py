@@ -9,6 +9,8 @@ A sweep file (conf/sweeps/<name>.yaml or a path) holds:
     models:                                 # name -> Lightning config (+ its own arguments)
       ggns: {config: conf/plate/ggns.yaml, args: []}
       mgn:  {config: conf/plate/mgn.yaml}
+    findings_ggns: [ggns_id]                # optional: variants of GGNS that the summary also judges
+                                            # in GGNS's place (the paper's findings, the targets)
 
 Each metric family of a run is tested with the checkpoint selected on that family
 (`ggns.evaluation.selection`; `Run.checkpoints`): one `test` per distinct checkpoint, computing
@@ -67,7 +69,7 @@ from ..evaluation.selection import (CHECKPOINT_KEY, CHECKPOINTS_KEY, FAMILY_CHEC
 from ..models.simulators import load_simulator
 from .aggregate import RunResult, aggregate, load_run, normalized_benefit, to_csv, to_markdown
 from .curves import LATE_STEPS, markdown_rows, plot_curves, read_scalars, variant_row
-from .findings import check_findings, check_targets, findings_markdown
+from .findings import as_ggns, check_findings, check_targets, findings_markdown
 from .figures import write_figures
 
 
@@ -216,6 +218,10 @@ def load_sweep(name_or_path: str | Path, overrides: list[str] = ()) -> dict:
             raise ValueError(f"{path}: model {name!r} needs a `config` (a Lightning config file)")
         if not Path(spec["config"]).is_file():
             raise FileNotFoundError(f"{path}: model {name!r}: config {spec['config']} not found")
+    unknown = [m for m in sweep.get("findings_ggns", []) if m not in sweep["models"]]
+    if unknown:
+        raise ValueError(f"{path}: findings_ggns names {unknown}, which are not models of the sweep "
+                         f"(have {list(sweep['models'])})")
     if len(set(sweep["seeds"])) != len(sweep["seeds"]):
         raise ValueError(f"{path}: repeated seeds {sweep['seeds']}")
     return sweep
@@ -456,6 +462,12 @@ def summarize(sweep: dict, log=print) -> Path:
               "Every model's one-step MSE against predicting no motion (the `static` row), GGNS's rollout "
               "MSE over the point-cloud schedules, GGNS k=1 against MGN (ggns.experiments.findings).", "",
               findings_markdown(check_targets(table), head="target")]
+    for model in sweep.get("findings_ggns", []):  # variants of GGNS, each judged in GGNS's place
+        if model in table:
+            stand_in = as_ggns(table, model)
+            lines += [f"## The paper's findings and the project's targets with `{model}` as GGNS", "",
+                      findings_markdown(check_findings(stand_in)),
+                      findings_markdown(check_targets(stand_in), head="target")]
     lines += ["## Training of each run and the checkpoint each metric family was tested with", "",
               _training_markdown(finished, results[:len(finished)], scalars)]
     lines += _learning_markdown(finished, scalars, output)

@@ -28,7 +28,8 @@ COLUMNS = {"rollout_mse_k1": "rollout MSE k=1", "rollout_mse_k2": "k=2", "rollou
            "rollout_iou_k5": "IoU k=5", "rollout_iou_never": "IoU never"}
 LABELS = {"ggns": "GGNS", "ggns_lstm": "GGNS+LSTM", "ggns_id": "GGNSID", "ggns_m": "GGNS(M)", "mgn": "MGN",
           "mgn_m": "MGN(M)", "mgn_shared": "MGN, the authors' variant", "static": "static (mesh held at S_0)",
-          "ggns_partition": "GGNS, per-type processor", "ggns_id_points_field": "GGNSID, field on point-cloud samples"}
+          "ggns_partition": "GGNS, per-type processor", "ggns_id_partition": "GGNSID, per-type processor",
+          "ggns_id_points_field": "GGNSID, field on point-cloud samples"}
 PAPER_MODELS = ("ggns", "ggns_lstm", "mgn_m", "mgn")
 NOT_ROWS = ("alpha_shapes",)  # baselines with generated-mesh metrics only
 NOT_POOLED = ("static", "alpha_shapes")  # deterministic baselines: one value, whatever the seeds

@@ -227,7 +227,7 @@ class GraphSimulator(pl.LightningModule):
                 continue
             out, state = self.predict_normalized(graph, state)
             squared = (out[free] - self.target_normalizer(target[free])).square()  # [free nodes, d]
-            extra = self.auxiliary_loss(graph, batch)
+            extra = self.auxiliary_loss(graph, batch, t, train)
             losses.append(squared.mean() if extra is None else squared.mean() + extra)
             if by_points:
                 error, owner = squared.mean(dim=1), batch.mesh_batch[free]
@@ -247,8 +247,10 @@ class GraphSimulator(pl.LightningModule):
                   if mask.any()}
         return loss, groups
 
-    def auxiliary_loss(self, graph: HeteroData, batch: TrajectoryBatch) -> Tensor | None:
-        """A loss added to a transition's (normalized) MSE, for models with a second head (GGNSID)."""
+    def auxiliary_loss(self, graph: HeteroData, batch: TrajectoryBatch, t: int = 0,
+                       train: bool = False) -> Tensor | None:
+        """A loss added to a transition's (normalized) MSE, for models with a second head (GGNSID). graph:
+        the sample of transition t of `batch`; train: a training sample (noise allowed)."""
         return None
 
     def update_statistics(self, graph: HeteroData, batch: TrajectoryBatch) -> None:
@@ -456,15 +458,16 @@ class GGNSID(GGNS):
 
     def __init__(self, connectivity: str = "plate_full_graph", point_probability: float = 0.5,
                  estimator_latent: int = 32, estimator_blocks: int = 3, material_loss_weight: float = 1.0,
-                 **kwargs):
+                 estimator_noise_std: float = 0.0, **kwargs):
         super().__init__(connectivity=connectivity, point_probability=point_probability, **kwargs)
         self.save_hyperparameters()
         if not self.uses_points:
             raise ValueError(f"GGNSID estimates the material from point clouds, and connectivity {connectivity!r} "
                              f"has no point edges")
-        if estimator_latent < 1 or estimator_blocks < 1 or material_loss_weight < 0:
-            raise ValueError(f"need estimator_latent >= 1, estimator_blocks >= 1 and material_loss_weight >= 0; got "
-                             f"{estimator_latent}, {estimator_blocks}, {material_loss_weight}")
+        if estimator_latent < 1 or estimator_blocks < 1 or material_loss_weight < 0 or estimator_noise_std < 0:
+            raise ValueError(f"need estimator_latent >= 1, estimator_blocks >= 1, material_loss_weight >= 0 and "
+                             f"estimator_noise_std >= 0; got {estimator_latent}, {estimator_blocks}, "
+                             f"{material_loss_weight}, {estimator_noise_std}")
         h = self.hparams
         self.estimator = EncodeProcessDecode(*self.input_dims(self.connectivity, h.dim, True), out_dim=2,
                                              latent=estimator_latent, blocks=estimator_blocks,
@@ -503,14 +506,30 @@ class GGNSID(GGNS):
         return [(self._set_material(graph, batch.material), target)
                 for graph, target in super().training_graphs(batch, train)]
 
-    def auxiliary_loss(self, graph: HeteroData, batch: TrajectoryBatch) -> Tensor | None:
-        """The estimator's Gaussian negative log-likelihood of the label, on the samples with points."""
+    def auxiliary_loss(self, graph: HeteroData, batch: TrajectoryBatch, t: int = 0,
+                       train: bool = False) -> Tensor | None:
+        """The estimator's Gaussian negative log-likelihood of the label, on the samples with points (in
+        training read from `estimator_graph`)."""
         if "point" not in graph.node_types or self.hparams.material_loss_weight == 0:
             return None
-        mean, log_var, has = self.estimate(graph)
+        mean, log_var, has = self.estimate(self.estimator_graph(graph, batch, t) if train else graph)
         label = self.material_normalizer(batch.material.to(mean.dtype)[:, None])[:, 0]
         nll = 0.5 * (log_var + (label - mean).square() * torch.exp(-log_var))
         return self.hparams.material_loss_weight * nll[has].mean()
+
+    def estimator_graph(self, graph: HeteroData, batch: TrajectoryBatch, t: int) -> HeteroData:
+        """What the estimator trains on for sample `graph` (transition t of `batch`): the sample itself, or,
+        with `estimator_noise_std`, its mesh moved by a smooth field on the free nodes, with the same point
+        clouds, rebuilt (the point-mesh edges follow the moved mesh)."""
+        std = self.hparams.estimator_noise_std
+        if std == 0:
+            return graph
+        has = torch.zeros(batch.num_graphs, dtype=torch.bool, device=batch.device)
+        has[graph["point"].batch] = True
+        field = smooth_field(batch.rest, batch.mesh_batch, batch.num_graphs, std,
+                             self.hparams.noise_field_wavelength, mixture=True)
+        pos = graph["mesh"].pos + field * ~batch.fixed[:, None]
+        return state_graph(batch, t, pos, has, self.connectivity, self.with_material)
 
     def update_statistics(self, graph: HeteroData, batch: TrajectoryBatch) -> None:
         saved = graph["mesh"].x

@@ -234,17 +234,21 @@ def test_every_variant_of_the_plate_m10_learning_file_parses(tmp_path):
         assert model.hparams.point_probability == probability
 
 
-def test_every_variant_of_the_plate_estimator_learning_file_parses(tmp_path):
-    """Issue 24's k=5 file: the preset's points-only-field GGNSID with and without the estimator's own
-    noise (nothing trained)."""
+def test_every_variant_of_the_estimator_learning_files_parses(tmp_path):
+    """Issue 24's estimator files: the presets' GGNSIDs (plate: the points-only field) with and without
+    the estimator's own noise (nothing trained)."""
     from ggns.cli import build_cli
     from ggns.models.simulators import GGNSID
 
-    for run in variant_runs(load_learning("plate_cpu_estimator", [f"output={tmp_path}"])):
-        argv = ["--config", run.config, "--seed_everything", str(run.seed),
-                "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
-        model = build_cli(argv, run=False).model
-        assert isinstance(model, GGNSID) and model.edge_partition and model.hparams.noise_field_points_only
-        assert model.hparams.noise_field_decay_steps == 8000
-        noise = float(run.model.split("noise_")[1]) if "estimator_noise" in run.model else 0.0
-        assert model.hparams.estimator_noise_std == noise
+    for preset in ("plate_cpu_estimator", "tissue_cpu_estimator"):
+        for run in variant_runs(load_learning(preset, [f"output={tmp_path}"])):
+            argv = ["--config", run.config, "--seed_everything", str(run.seed),
+                    "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
+            model = build_cli(argv, run=False).model
+            assert isinstance(model, GGNSID) and model.edge_partition
+            plate = preset.startswith("plate")
+            assert model.hparams.noise_field_points_only == plate
+            assert model.hparams.noise_field_decay_steps == (8000 if plate else 0)
+            assert model.hparams.noise_field_wavelength == (4.0 if plate else 2.0)
+            noise = float(run.model.split("noise_")[1]) if "estimator_noise" in run.model else 0.0
+            assert model.hparams.estimator_noise_std == noise

@@ -69,11 +69,11 @@ def oracle_rollouts(model, batch) -> None:
     units, which no estimate moves), a point cloud every step and none, beside its own estimate."""
     label = model.material_normalizer(batch.material[:, None])[:, 0]
     known = (torch.full_like(label, 1e6), label * 1e6)
+    true = split_trajectories(batch.positions, batch)
     print("\n| schedule | rollout MSE, own estimate | rollout MSE, the label as estimate |\n|---|---|---|")
     for name, schedule in (("k=1", EveryK(1)), ("never", Never())):
         own, _ = rollout(model.step, batch, schedule, model.connectivity, model.with_material)
         told, _ = rollout(model.step, batch, schedule, model.connectivity, model.with_material, state=known)
-        true = split_trajectories(batch.positions, batch)
         mse = [torch.tensor([rollout_mse(p, t)[0] for p, t in zip(split_trajectories(pred, batch), true)]).mean().item()
                for pred in (own, told)]
         print(f"| {name} | {mse[0]:.3e} | {mse[1]:.3e} |")

@@ -7,7 +7,7 @@ from torch_geometric.data import Batch, HeteroData
 
 from ggns.graphs.types import EDGE_TYPES, MESH_EDGE, NODE_TYPES, WORLD_EDGE
 from ggns.models import EncodeProcessDecode, Normalizer, NormalizerDict, graph_features
-from ggns.models.core import mean_aggregate
+from ggns.models.core import inverse_counts, mean_aggregate
 
 D = 2
 NODE_DIMS = {"mesh": 1, "collider": D, "point": 0}
@@ -154,9 +154,8 @@ def test_mgn_slots_and_ggns_pooled_mean():
     """MGN: one aggregate slot per incoming edge type; GGNS: one mean over all incoming edges."""
     block = make_model(True, latent=4, blocks=1).processor[0]
     assert block.node_mlp["mesh"][0].in_features == 4 * (1 + 4)  # mesh_edge, world, collider->, point->
-    m1, m2 = torch.tensor([[1.0], [3.0]]), torch.tensor([[8.0]])
-    r1, r2 = torch.tensor([0, 2]), torch.tensor([0])
-    pooled = mean_aggregate([(m1, r1), (m2, r2)], 3, torch.zeros(3, 1))
+    messages, receivers = torch.tensor([[1.0], [3.0], [8.0]]), torch.tensor([0, 2, 0])
+    pooled = mean_aggregate(messages, receivers, inverse_counts(receivers, 3, messages))
     assert pooled.flatten().tolist() == [4.5, 0.0, 3.0]
 
 

@@ -535,13 +535,33 @@ def paper(task: Literal["plate", "tissue", "cavity"] = "plate", summary: dict[st
     return text
 
 
+def bench_ab(baseline: str, probe: Sequence[str] | None = None, rounds: int = 5, candidate: str | None = None,
+             output_dir: str | None = None, threads: int | None = None) -> list[dict]:
+    """This checkout against a baseline commit, in one run on this machine (probes alternate between them).
+
+    Args:
+        baseline: a commit of this repository (checked out into a temporary worktree) or a checkout's path
+        probe: probes as "train MODEL LATENT BLOCKS BATCH", "rollout MODEL LATENT BLOCKS TRAJECTORIES SCHEDULE"
+            or "fit MODEL LATENT BLOCKS BATCH" (default: the demo's and the paper-size models')
+        rounds: rounds of every probe on both trees (medians over rounds are reported)
+        candidate: the tree measured against the baseline (default: this checkout)
+        output_dir: write ab_raw.csv and ab_summary.md here
+        threads: OMP_NUM_THREADS of the probes (default: torch's own choice)
+    """
+    from .bench.ab import DEFAULT_PROBES, ROOT
+    from .bench.ab import bench_ab as run
+
+    return run(baseline, tuple(probe) if probe else DEFAULT_PROBES, rounds=rounds,
+               candidate=candidate or str(ROOT), output=output_dir, threads=threads)
+
+
 COMMANDS = {
     "generate": generate,
     "import-reference": import_reference,
     "geometry": geometry,
     "bench": {"sim": bench_sim, "solvers": bench_solvers, "models": bench_models, "tradeoff": bench_tradeoff,
               "stability": bench_stability,
-              "learning": bench_learning},
+              "learning": bench_learning, "ab": bench_ab},
     "export": export,
     "rollout": rollout,
     "diagnose": diagnose,

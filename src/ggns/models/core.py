@@ -20,6 +20,20 @@ Linear(128, 128), LeakyReLU, Linear(128, d)), [N_mesh, latent] -> [N_mesh, out_d
   type] with a fixed slot per edge type (in `EDGE_TYPES` order), zeros when that type is absent.
 The paper's GGNS is type_encoding="one_hot" with edge_partition=False; MGN is "per_type" with True.
 
+The processor runs on a packed layout (`PackedGraph`, made once per forward by `pack`): the latents of
+all node types as one array [N_all, L] (types in `NODE_TYPES` order, so mesh rows come first) and of all
+edge types as one array [E_all, L] (edge types into mesh first, in `EDGE_TYPES` order), with global
+sender and receiver indices. A shared block is then one node projection, two gathers, one edge product,
+one scatter-mean and one node product for all types at once, whatever the number of types; a
+partitioned block runs its per-type products on slices of the same arrays and aggregates every slot
+with one scatter. The last block updates only what reaches the decoder: the edges into mesh (a prefix
+of the edge array) and the mesh nodes (a prefix of the node array).
+
+Masked edges: an edge store may carry `edge_mask` [E] bool (the fixed-capacity graphs of
+`graphs.build`, whose neighbour lists have a static shape); a masked edge is computed like any other
+but its message goes to a sink row that no node reads, and it counts in no mean, so the output equals
+that of the graph without those edges.
+
 Inputs are read from `data[node_type].x` and `data[edge_type].edge_attr` and normalized
 inside by `input_normalizer` (per type, before any one-hot or padding), so a checkpoint carries
 its statistics and every caller (training, rollout) feeds raw graphs. Fill it before training with
@@ -29,6 +43,7 @@ Any node or edge type the model was built for may be absent from a graph; `mesh`
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 from typing import Mapping
 
 import torch
@@ -36,6 +51,7 @@ from torch import Tensor, nn
 from torch_geometric.data import HeteroData
 
 from ..graphs.types import EDGE_TYPES, NODE_TYPES
+from ..phases import phase
 from .normalization import DEFAULT_STD_FLOOR, NodeOrEdgeType, NormalizerDict, TypeModuleDict
 
 EdgeType = tuple[str, str, str]
@@ -65,17 +81,106 @@ def graph_features(data: HeteroData) -> dict[NodeOrEdgeType, Tensor]:
     return {**{t: data[t].x for t in data.node_types}, **{t: data[t].edge_attr for t in data.edge_types}}
 
 
-def apply_shared(f: nn.Module, inputs: dict) -> dict:
-    """One module f on the inputs {type: [M_t, F]} of all types at once -> {type: [M_t, F']}."""
-    if not inputs:
-        return {}
-    out = f(torch.cat(list(inputs.values())))
-    return dict(zip(inputs, out.split([len(v) for v in inputs.values()])))
+@dataclass
+class PackedGraph:
+    """A graph's types laid out as one node array and one edge array (module docstring).
+
+    node_types / edge_types: the types present, in packing order; node_offsets / edge_offsets
+    [len + 1] host ints: type i owns rows offsets[i]:offsets[i + 1]. src / dst [E_all]: global node
+    indices of each edge's sender and receiver; receiver [E_all]: dst, or `num_nodes` (the sink row)
+    for a masked edge; local_index: each edge type's own edge_index [2, E_t] (indices within its types). into_mesh: edges [0, into_mesh) end at mesh nodes, and num_mesh nodes are mesh.
+    inv_degree [num_nodes + 1, 1]: 1 / max(1, unmasked incoming edges) (the pooled mean);
+    slot_receiver [E_all]: receiver * slots + slot of the edge's type at its receiver's node type, and
+    inv_slot_degree [(num_nodes + 1) * slots, 1] likewise per slot (the partitioned processor's means).
+    """
+
+    node_types: list[str]
+    node_offsets: list[int]
+    edge_types: list[EdgeType]
+    edge_offsets: list[int]
+    src: Tensor
+    dst: Tensor
+    receiver: Tensor
+    local_index: list[Tensor]
+    into_mesh: int
+    num_mesh: int
+    inv_degree: Tensor
+    slots: int
+    slot_receiver: Tensor | None
+    inv_slot_degree: Tensor | None
+
+    @property
+    def num_nodes(self) -> int:
+        return self.node_offsets[-1]
+
+    def node_rows(self, node_type: str) -> slice:
+        i = self.node_types.index(node_type)
+        return slice(self.node_offsets[i], self.node_offsets[i + 1])
+
+    def edge_rows(self, edge_type: EdgeType) -> slice:
+        i = self.edge_types.index(edge_type)
+        return slice(self.edge_offsets[i], self.edge_offsets[i + 1])
+
+
+def edge_packing_order(edge_types) -> list[EdgeType]:
+    """Edge types into mesh first, then the others, each group in `EDGE_TYPES` order."""
+    known = [t for t in EDGE_TYPES if t in edge_types]
+    return [t for t in known if t[2] == "mesh"] + [t for t in known if t[2] != "mesh"]
+
+
+def inverse_counts(receivers: Tensor, size: int, like: Tensor) -> Tensor:
+    """1 / max(1, number of occurrences of each index in [0, size)) as [size, 1] (no host sync)."""
+    count = like.new_zeros(size, 1).index_add_(0, receivers, like.new_ones(len(receivers), 1))
+    return count.clamp(min=1).reciprocal()
+
+
+def pack(data: HeteroData, slot_of: Mapping[EdgeType, int] | None, slots: int, like: Tensor) -> PackedGraph:
+    """The packed layout of `data` (module docstring). slot_of: slot of each edge type at its receiver's
+    node type, for the partitioned processor (None: the pooled mean only). like: a float tensor giving
+    the degrees' dtype and device."""
+    node_types = [t for t in NODE_TYPES if t in data.node_types]
+    if node_types[:1] != ["mesh"]:
+        raise ValueError(f"a graph needs mesh nodes, got node types {data.node_types}")
+    node_offsets = [0]
+    for t in node_types:
+        node_offsets.append(node_offsets[-1] + data[t].num_nodes)
+    start = dict(zip(node_types, node_offsets))
+    edge_types = edge_packing_order(data.edge_types)
+    edge_offsets, src, dst, receiver, slot_receiver = [0], [], [], [], []
+    sink = node_offsets[-1]
+    for t in edge_types:
+        index, store = data[t].edge_index, data[t]
+        s, d = index[0] + start[t[0]], index[1] + start[t[2]]
+        r = d if "edge_mask" not in store else torch.where(store.edge_mask, d, sink)
+        src.append(s)
+        dst.append(d)
+        receiver.append(r)
+        if slot_of is not None:
+            slot_receiver.append(r * slots + slot_of[t])
+        edge_offsets.append(edge_offsets[-1] + index.size(1))
+    empty = like.new_zeros(0, dtype=torch.long)
+    cat = (lambda parts: torch.cat(parts) if parts else empty)
+    receiver_all = cat(receiver)
+    into_mesh = edge_offsets[sum(t[2] == "mesh" for t in edge_types)]
+    slot_all = cat(slot_receiver) if slot_of is not None else None
+    return PackedGraph(node_types, node_offsets, edge_types, edge_offsets, cat(src), cat(dst), receiver_all,
+                       [data[t].edge_index for t in edge_types],
+                       into_mesh, node_offsets[1], inverse_counts(receiver_all, sink + 1, like), slots, slot_all,
+                       inverse_counts(slot_all, (sink + 1) * slots, like) if slot_all is not None else None)
+
+
+def mean_aggregate(messages: Tensor, receivers: Tensor, inv_count: Tensor) -> Tensor:
+    """Mean of messages [E, L] at their receivers [E] -> [len(inv_count), L], given 1 / count per row
+    (`inverse_counts`); 0 where none arrive."""
+    total = messages.new_zeros(len(inv_count), messages.shape[1]).index_add_(0, receivers, messages)
+    return total * inv_count
 
 
 class OneHotEncoder(nn.Module):
     """One Linear(len(types) + width, latent) shared by several node (or edge) types: the rows
-    [M, F_t] of type t enter as [one-hot of t's position in `types`, features, zeros to `width`]."""
+    [M, F_t] of type t enter as [one-hot of t's position in `types`, features, zeros to `width`].
+    Computed without building those rows: type t's rows are x_t W_t^T + (b + W[:, slot_t]), with W_t
+    the columns of its features (the one-hot's product is a per-type bias, the zeros' nothing)."""
 
     def __init__(self, types: list[NodeOrEdgeType], width: int, latent: int):
         super().__init__()
@@ -94,22 +199,19 @@ class OneHotEncoder(nn.Module):
 
     def forward(self, features: Mapping[NodeOrEdgeType, Tensor]) -> dict[NodeOrEdgeType, Tensor]:
         """{type: [M, F_t]} -> {type: [M, latent]}."""
-        return apply_shared(self.linear, self.inputs(features))
-
-
-def mean_aggregate(messages: list[tuple[Tensor, Tensor]], num_nodes: int, like: Tensor) -> Tensor:
-    """Mean of messages [E_i, L] at their receivers [E_i] -> [num_nodes, L]; 0 where none arrive."""
-    total = like.new_zeros(num_nodes, like.shape[1])
-    count = like.new_zeros(num_nodes, 1)
-    for message, receivers in messages:
-        total.index_add_(0, receivers, message)
-        count.index_add_(0, receivers, message.new_ones(len(receivers), 1))
-    return total / count.clamp(min=1)
+        weight, slots = self.linear.weight, len(self.types)
+        biases = self.linear.bias + weight[:, :slots].T  # [types, latent]: row i is type i's bias
+        out = {}
+        for t, x in features.items():
+            bias = biases[self.types.index(t)]
+            out[t] = (torch.addmm(bias, x, weight[:, slots:slots + x.shape[1]].T) if x.shape[1]
+                      else bias.expand(len(x), -1))
+        return out
 
 
 class GraphNetBlock(nn.Module):
-    """One message-passing step with residuals, updating the edges of `edge_types` and the nodes
-    of `node_types` (a graph may lack any of them); other types are dropped from the output."""
+    """One message-passing step with residuals on a `PackedGraph`, updating the edges of `edge_types`
+    and the nodes of `node_types` (a graph may lack any of them)."""
 
     def __init__(self, node_types: list[str], edge_types: list[EdgeType], latent: int, mlp_layers: int,
                  edge_partition: bool):
@@ -124,58 +226,57 @@ class GraphNetBlock(nn.Module):
             self.edge_mlp = mlp(3 * latent, latent, mlp_layers)
             self.node_mlp = mlp(2 * latent, latent, mlp_layers)
 
-    def _run_mlp(self, f: nn.Module, inputs: dict) -> dict:
-        """f per type (a TypeModuleDict) or one shared f on all types at once."""
-        if isinstance(f, TypeModuleDict):
-            return {t: f[t](v) for t, v in inputs.items()}
-        return apply_shared(f, inputs)
+    @staticmethod
+    def _edge_update(f: nn.Sequential, x_src: Tensor, x_dst: Tensor, src: Tensor, dst: Tensor, e: Tensor) -> Tensor:
+        """e + f([x_src[src], x_dst[dst], e]) with f's first Linear split by input block: the node blocks
+        are applied once per node and gathered per edge, so the per-edge work is one [L, L] product
+        instead of a [3L, L] product on a concatenation (same function and weights)."""
+        first, latent = f[0], e.shape[1]
+        w = first.weight
+        if x_src is x_dst:  # one product for both node blocks
+            projection = x_src @ torch.cat([w[:, :latent], w[:, latent:2 * latent]]).T
+            a, b = projection[:, :latent], projection[:, latent:]
+        else:
+            a, b = x_src @ w[:, :latent].T, x_dst @ w[:, latent:2 * latent].T
+        h = a.index_select(0, src) + b.index_select(0, dst) + nn.functional.linear(e, w[:, 2 * latent:], first.bias)
+        return e + f[1:](h)
 
-    def _edge_updates(self, x_dict: dict[str, Tensor], edge_attr_dict: dict[EdgeType, Tensor],
-                      edge_index_dict: dict[EdgeType, Tensor]) -> dict[EdgeType, Tensor]:
-        """f_E([x_src, x_dst, e]) per edge type, with f_E's first Linear split by input block: the
-        node blocks are applied once per node and gathered per edge, so the per-edge work is one
-        [L, L] product instead of a [3L, L] product on a concatenation (same function and weights)."""
-        shared_projection: dict[str, Tensor] = {}  # node type -> [N, 2L]: [x W_src^T, x W_dst^T] (shared f_E)
-        updates = {}
-        for t, index in edge_index_dict.items():
-            if t not in self.edge_types:
-                continue
-            f = self.edge_mlp[t] if self.edge_partition else self.edge_mlp
-            first, latent = f[0], edge_attr_dict[t].shape[1]
-            w_node, w_edge = first.weight[:, : 2 * latent], first.weight[:, 2 * latent:]
-            if self.edge_partition:
-                src = x_dict[t[0]] @ w_node[:, :latent].T
-                dst = x_dict[t[2]] @ w_node[:, latent:].T
-            else:
-                for n in (t[0], t[2]):
-                    if n not in shared_projection:
-                        shared_projection[n] = x_dict[n] @ torch.cat([w_node[:, :latent], w_node[:, latent:]]).T
-                src, dst = shared_projection[t[0]][:, :latent], shared_projection[t[2]][:, latent:]
-            h = (src.index_select(0, index[0]) + dst.index_select(0, index[1])
-                 + nn.functional.linear(edge_attr_dict[t], w_edge, first.bias))
-            updates[t] = f[1:](h)
-        return updates
+    def forward(self, x: Tensor, e: Tensor, graph: PackedGraph) -> tuple[Tensor, Tensor]:
+        """Latents x [N_all, L] and e [E_all, L] of `graph` -> (x' [N', L], e' [E', L]): all rows, or for a
+        block that updates only mesh nodes the mesh prefix of both."""
+        mesh_only = self.node_types == ["mesh"]
+        edges = graph.into_mesh if mesh_only else len(e)
+        nodes = graph.num_mesh if mesh_only else len(x)
+        if self.edge_partition:
+            return self._partitioned(x, e, graph, edges, nodes)
+        e = self._edge_update(self.edge_mlp, x, x, graph.src[:edges], graph.dst[:edges], e[:edges])
+        aggregate = mean_aggregate(e, graph.receiver[:edges], graph.inv_degree)
+        x = x[:nodes] + self.node_mlp(torch.cat([x[:nodes], aggregate[:nodes]], dim=1))
+        return x, e
 
-    def _aggregates(self, node_type: str, x: Tensor, edge_attr_dict: dict[EdgeType, Tensor],
-                    edge_index_dict: dict[EdgeType, Tensor]) -> list[Tensor]:
-        """The means of the incoming edge latents of the nodes `x` [N, L] of `node_type`."""
-        if self.edge_partition:  # one mean per incoming edge type
-            return [mean_aggregate([(edge_attr_dict[t], edge_index_dict[t][1])] if t in edge_attr_dict else [],
-                                   len(x), x)
-                    for t in self.slots[node_type]]
-        return [mean_aggregate([(edge_attr_dict[t], edge_index_dict[t][1]) for t in edge_attr_dict
-                                if t[2] == node_type], len(x), x)]
-
-    def forward(self, x_dict: dict[str, Tensor], edge_attr_dict: dict[EdgeType, Tensor],
-                edge_index_dict: dict[EdgeType, Tensor]) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
-        """Latents x_dict {node type: [N, L]}, edge_attr_dict {edge type: [E, L]} and edge_index_dict
-        {edge type: [2, E]} -> (x_dict', edge_attr_dict')."""
-        edge_attr_dict = {t: edge_attr_dict[t] + update
-                          for t, update in self._edge_updates(x_dict, edge_attr_dict, edge_index_dict).items()}
-        node_inputs = {n: torch.cat([x, *self._aggregates(n, x, edge_attr_dict, edge_index_dict)], dim=1)
-                       for n, x in x_dict.items() if n in self.node_types}
-        x_dict = {n: x_dict[n] + update for n, update in self._run_mlp(self.node_mlp, node_inputs).items()}
-        return x_dict, edge_attr_dict
+    def _partitioned(self, x: Tensor, e: Tensor, graph: PackedGraph, edges: int, nodes: int) -> tuple[Tensor, Tensor]:
+        """One f_E per edge type on its rows; every slot's mean with one scatter; one f_V per node type."""
+        updated = []
+        for i, t in enumerate(graph.edge_types):
+            rows = slice(graph.edge_offsets[i], graph.edge_offsets[i + 1])
+            if rows.start >= edges:
+                break
+            x_src = x[graph.node_rows(t[0])]
+            x_dst = x[graph.node_rows(t[2])] if t[0] != t[2] else x_src
+            index = graph.local_index[i]
+            updated.append(self._edge_update(self.edge_mlp[t], x_src, x_dst, index[0], index[1], e[rows]))
+        e = torch.cat(updated) if updated else e[:0]
+        slots = graph.slots
+        aggregate = mean_aggregate(e, graph.slot_receiver[:edges], graph.inv_slot_degree).view(-1, slots, x.shape[1])
+        out = []
+        for n in graph.node_types:
+            rows = graph.node_rows(n)
+            if rows.start >= nodes:
+                break
+            width = len(self.slots[n])
+            inputs = torch.cat([x[rows], aggregate[rows, :width].reshape(-1, width * x.shape[1])], dim=1)
+            out.append(x[rows] + self.node_mlp[n](inputs))
+        return torch.cat(out) if len(out) > 1 else out[0], e
 
 
 class EncodeProcessDecode(nn.Module):
@@ -201,13 +302,17 @@ class EncodeProcessDecode(nn.Module):
         node_types = [t for t in NODE_TYPES if t in node_dims]
         edge_types = [t for t in EDGE_TYPES if t in edge_dims]
         self.input_normalizer = NormalizerDict({**node_dims, **edge_dims}, std_floor)
-        self.type_encoding = type_encoding
+        self.type_encoding, self.edge_partition = type_encoding, edge_partition
         if type_encoding == "one_hot":
             self.node_encoder = OneHotEncoder(node_types, max(node_dims.values()), latent)
             self.edge_encoder = OneHotEncoder(edge_types, max(edge_dims.values(), default=0), latent)
         else:
             self.node_encoder = TypeModuleDict({t: linear_encoder(node_dims[t], latent) for t in node_types})
             self.edge_encoder = TypeModuleDict({t: linear_encoder(edge_dims[t], latent) for t in edge_types})
+        # the partitioned processor's slot of each edge type among the types into its receiver's node type
+        incoming = {n: [t for t in edge_types if t[2] == n] for n in node_types}
+        self.slot_of = {t: incoming[t[2]].index(t) for t in edge_types}
+        self.num_slots = max((len(v) for v in incoming.values()), default=0) or 1
         # The last block updates only what reaches the decoder: mesh nodes and edges into mesh.
         last = (["mesh"], [t for t in edge_types if t[2] == "mesh"])
         self.processor = nn.ModuleList(
@@ -215,27 +320,37 @@ class EncodeProcessDecode(nn.Module):
             for b in range(blocks))
         self.decoder = nn.Sequential(mlp(latent, latent, mlp_layers), nn.Linear(latent, out_dim))
 
+    def _encode(self, features: Mapping[NodeOrEdgeType, Tensor], types: list) -> dict:
+        encoder = self.node_encoder if isinstance(types[0], str) else self.edge_encoder
+        if self.type_encoding == "one_hot":
+            return encoder(features)
+        return {t: encoder[t](features[t]) for t in types}
+
     def encode(self, data: HeteroData) -> tuple[dict[str, Tensor], dict[EdgeType, Tensor]]:
         """Graph -> encoded latents ({node type: [N, latent]}, {edge type: [E, latent]})."""
         features = self.input_normalizer(graph_features(data))  # KeyError for a type the model lacks
-        x_dict = {t: features[t] for t in data.node_types}
-        edge_attr_dict = {t: features[t] for t in data.edge_types}
-        if self.type_encoding == "one_hot":
-            return self.node_encoder(x_dict), self.edge_encoder(edge_attr_dict)
-        return ({t: self.node_encoder[t](x) for t, x in x_dict.items()},
-                {t: self.edge_encoder[t](e) for t, e in edge_attr_dict.items()})
+        node_types, edge_types = list(data.node_types), list(data.edge_types)
+        x = self._encode({t: features[t] for t in node_types}, node_types)
+        e = self._encode({t: features[t] for t in edge_types}, edge_types) if edge_types else {}
+        return x, e
 
     def encode_process(self, data: HeteroData) -> Tensor:
         """Graph -> mesh node latents [N_mesh, latent] after the processor."""
-        x_dict, edge_attr_dict = self.encode(data)
-        edge_index_dict = {t: data[t].edge_index for t in data.edge_types}  # data.edge_index_dict fails without edges
-        for block in self.processor:
-            x_dict, edge_attr_dict = block(x_dict, edge_attr_dict, edge_index_dict)
-        return x_dict["mesh"]
+        with phase("encoder"):
+            x_dict, e_dict = self.encode(data)
+            like = x_dict["mesh"]
+            graph = pack(data, self.slot_of if self.edge_partition else None, self.num_slots, like)
+            x = torch.cat([x_dict[t] for t in graph.node_types])
+            e = torch.cat([e_dict[t] for t in graph.edge_types]) if graph.edge_types else like[:0]
+        with phase("processor"):
+            for block in self.processor:
+                x, e = block(x, e, graph)
+        return x[:graph.num_mesh]
 
     def decode(self, latents: Tensor) -> Tensor:
         """Mesh latents [N_mesh, latent] -> [N_mesh, out_dim]."""
-        return self.decoder(latents)
+        with phase("decoder"):
+            return self.decoder(latents)
 
     def forward(self, data: HeteroData) -> Tensor:
         """Graph -> [N_mesh, out_dim], in the units of the (normalized) training target."""

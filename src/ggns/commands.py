@@ -535,6 +535,33 @@ def paper(task: Literal["plate", "tissue", "cavity"] = "plate", summary: dict[st
     return text
 
 
+def bench_profile(model: str = "ggns", dataset: str = "plate_small", latent: int = 128, blocks: int = 5,
+                  batch_size: int = 32, rollout_trajectories: int = 1, schedule: str = "every:1",
+                  device: Literal["cpu", "cuda"] = "cpu", steps: int = 10, warmup: int = 3, fit_steps: int = 0,
+                  output_dir: str | None = None) -> dict:
+    """Where the time of a training step and a rollout step goes: phases, operators or kernels, host reads, matrix share.
+
+    Args:
+        model: model config of conf/plate/ (random weights: speed does not depend on them)
+        dataset: data preset (train and test splits)
+        latent: latent width (paper: 128)
+        blocks: message-passing blocks (paper: 5)
+        batch_size: training windows per batch (paper: 32)
+        rollout_trajectories: trajectories rolled out at once
+        schedule: point-cloud schedule of the rollout
+        device: where the model runs
+        steps: profiled steps of each kind
+        warmup: steps before the timing
+        fit_steps: also a Lightning fit of this many steps, against the bare loop (0: none)
+        output_dir: write profile.json and profile.md here
+    """
+    from .bench.profile import profile
+
+    return profile(model, dataset, latent=latent, blocks=blocks, batch_size=batch_size,
+                   rollout_trajectories=rollout_trajectories, schedule=schedule, device=device, steps=steps,
+                   warmup=warmup, fit_steps=fit_steps, output=output_dir)
+
+
 def bench_ab(baseline: str, probe: Sequence[str] | None = None, rounds: int = 5, candidate: str | None = None,
              output_dir: str | None = None, threads: int | None = None) -> list[dict]:
     """This checkout against a baseline commit, in one run on this machine (probes alternate between them).
@@ -561,7 +588,8 @@ COMMANDS = {
     "geometry": geometry,
     "bench": {"sim": bench_sim, "solvers": bench_solvers, "models": bench_models, "tradeoff": bench_tradeoff,
               "stability": bench_stability,
-              "learning": bench_learning, "ab": bench_ab},
+              "learning": bench_learning, "ab": bench_ab,
+              "profile": bench_profile},
     "export": export,
     "rollout": rollout,
     "diagnose": diagnose,

@@ -77,7 +77,7 @@ def _graph_size(graph, num_graphs: int) -> tuple[float, float]:
     return nodes / num_graphs, edges / num_graphs
 
 
-def _train_batches(datamodule, window: int, count: int, device: torch.device) -> list:
+def train_batches_on(datamodule, window: int, count: int, device: torch.device) -> list:
     """`count` training batches (windows of `window` transitions), cycling the shuffled loader if
     the split has fewer, collated and moved to the device before any timing."""
     datamodule.train_window = window
@@ -92,7 +92,7 @@ def _train_batches(datamodule, window: int, count: int, device: torch.device) ->
 
 def _bench_training(name: str, model, datamodule, train_batches: int, device: torch.device,
                     statistics_batches: int = 2, warmup: int = 2) -> dict:
-    batches = _train_batches(datamodule, model.window, statistics_batches + warmup + train_batches, device)
+    batches = train_batches_on(datamodule, model.window, statistics_batches + warmup + train_batches, device)
     model.fit_normalizers(batches[:statistics_batches])
     model.train()
     optimizer = torch.optim.Adam(model.parameters(), lr=model.hparams.lr)

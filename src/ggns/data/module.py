@@ -198,12 +198,23 @@ class SimulationDataModule(pl.LightningDataModule):
     def _seed(self) -> int:
         return self.seed if self.seed is not None else int(os.environ.get("PL_GLOBAL_SEED", 0))
 
+    def _on_gpu(self) -> bool:
+        trainer = self.trainer
+        return trainer is not None and trainer.strategy.root_device.type == "cuda"
+
     def _loader(self, dataset: Dataset, batch_size: int, sampler=None) -> DataLoader:
         # its own generator: creating an iterator (every epoch, every validation) draws the workers' base
-        # seed from it, which would otherwise shift torch's global generator, i.e. the training noise
+        # seed from it, which would otherwise shift torch's global generator, i.e. the training noise.
+        # On a GPU the batches are pinned, so that their move to the device does not wait (transfer_batch_to_device)
         return DataLoader(dataset, batch_size=batch_size, sampler=sampler, collate_fn=collate,
                           num_workers=self.num_workers, persistent_workers=self.num_workers > 0,
-                          generator=torch.Generator().manual_seed(self._seed()))
+                          generator=torch.Generator().manual_seed(self._seed()), pin_memory=self._on_gpu())
+
+    def transfer_batch_to_device(self, batch, device: torch.device, dataloader_idx: int):
+        """TrajectoryBatches move without the host waiting for the copies on a GPU (`TrajectoryBatch.to`)."""
+        if isinstance(batch, TrajectoryBatch):
+            return batch.to(device, non_blocking=device.type == "cuda")
+        return super().transfer_batch_to_device(batch, device, dataloader_idx)
 
     def train_dataloader(self) -> DataLoader:
         """Windows in `EpochSampler` order: this process's share (a rank of the trainer's world), from

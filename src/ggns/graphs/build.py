@@ -16,7 +16,10 @@ Conventions (see `ggns.graphs.types` for the vocabulary):
 - World edges (WORLD_EDGE): mesh pairs within `world` radius that are not mesh edges.
 - Radius queries return at most `max_num_neighbors` neighbours per node; the builder raises
   instead of dropping edges when any node has more within the radius of any radius edge type
-  (on either side of a cross type; for world edges, mesh-edge neighbours count too).
+  (on either side of a cross type; for world edges, mesh-edge neighbours count too). In the hot path
+  (training steps, rollouts) that verdict stays on the device (`NeighbourCheck`, a deferred check read
+  at intervals), so the only synchronizations of a build are the radius queries' own (their edge
+  counts are data).
 """
 from __future__ import annotations
 
@@ -25,6 +28,9 @@ import torch_cluster
 from torch import Tensor
 from torch_geometric.data import HeteroData
 
+from ..batch import check_batch_vectors
+from ..checks import DeferredCheck
+from ..phases import phase
 from .connectivity import Connectivity
 from .types import MESH_EDGE, WORLD_EDGE
 
@@ -49,29 +55,77 @@ def build_graph(
     connectivity: Connectivity,
     num_graphs: int,
     material: Tensor | None = None,
+    neighbours: NeighbourCheck | None = None,
+    check_inputs: bool = True,
 ) -> HeteroData:
     """The batched graph of B = num_graphs states (module docstring for the layout): `node_graph`,
     then `add_mesh_edges`, then `add_radius_edges` for every edge type of `connectivity` (world edges
-    filtered by `drop_mesh_pairs`), then one check of the neighbour caps (`check_neighbour_caps`).
+    filtered by `drop_mesh_pairs`), then the check of the neighbour caps: at once (ValueError), or
+    recorded in `neighbours` (a `NeighbourCheck`, read later).
 
     mesh_pos, mesh_rest [N, d]; mesh_edges [2, Em] directed (both directions), global indices;
     fixed [N] bool; mesh_batch [N] long, sorted; collider_pos, collider_next [K, d] and
     collider_batch [K] (all None when there is no collider); points [P, d] and point_batch [P]
-    (None: no points); material [B] Poisson ratios (MGN(M) node feature) or None.
+    (None: no points); material [B] Poisson ratios (MGN(M) node feature) or None. check_inputs: the
+    value checks of the batch vectors and mesh edges (one sync; callers that checked the same
+    batch before skip it).
     """
-    if not connectivity.uses_points:
-        points = point_batch = None
-    data = node_graph(mesh_pos, fixed, mesh_batch, num_graphs, material, collider_pos, collider_next, collider_batch,
-                      points, point_batch)
-    _check_inputs(data, mesh_rest, mesh_edges, fixed, num_graphs)
-    add_mesh_edges(data, mesh_edges, mesh_rest)
-    most = {}  # edge type -> largest neighbour count of a node in its radius query (0-d tensor)
-    for edge_type, radius in connectivity.radii().items():
-        if radius > 0 and edge_type[0] in data.node_types and edge_type[2] in data.node_types \
-                and edge_type not in data.edge_types:
-            most[edge_type] = add_radius_edges(data, edge_type, radius, connectivity.max_num_neighbors)
-    check_neighbour_caps(most, connectivity)
+    with phase("graph construction"):
+        if not connectivity.uses_points:
+            points = point_batch = None
+        data = node_graph(mesh_pos, fixed, mesh_batch, num_graphs, material, collider_pos, collider_next,
+                          collider_batch, points, point_batch)
+        _check_shapes(data, mesh_rest, mesh_edges, fixed, num_graphs)
+        if check_inputs:
+            check_values(data, mesh_edges, num_graphs)
+        add_mesh_edges(data, mesh_edges, mesh_rest)
+        most = {}  # edge type -> [largest neighbour count of a node in its radius query, its side, the node]
+        for edge_type, radius in connectivity.radii().items():
+            if radius > 0 and edge_type[0] in data.node_types and edge_type[2] in data.node_types \
+                    and edge_type not in data.edge_types:
+                most[edge_type] = add_radius_edges(data, edge_type, radius, connectivity.max_num_neighbors)
+    with phase("checks"):
+        checker = neighbours if neighbours is not None else NeighbourCheck(connectivity)
+        checker.record(most)
+        if neighbours is None:
+            checker.raise_if_failed()
     return data
+
+
+class NeighbourCheck:
+    """The neighbour caps of many graph builds as a deferred check (`ggns.checks`): `record` keeps, on
+    the device, the first build (at `step`, set by the caller) where a node had more than
+    `max_num_neighbors` neighbours in a radius query; `raise_if_failed` reads it and raises a ValueError
+    naming the step, the edge type, the node and its count."""
+
+    def __init__(self, connectivity: Connectivity, what: str = "graph"):
+        self.connectivity, self.what, self.step = connectivity, what, 0
+        self.types = [t for t, r in connectivity.radii().items() if r > 0]
+        self.check = DeferredCheck()
+
+    def record(self, most: dict) -> None:
+        """most: {edge type: [count, side (0: destination, 1: source), node]} of one build (long [3])."""
+        if not most:
+            return
+        device = next(iter(most.values())).device
+        table = torch.stack([most[t] if t in most else torch.zeros(3, dtype=torch.long, device=device)
+                             for t in self.types])
+        self.check.record((table[:, 0] > self.connectivity.max_num_neighbors).any(), self.step, table)
+
+    def raise_if_failed(self) -> None:
+        failure = self.check.failure()
+        if failure is None:
+            return
+        self.check.reset()
+        cap, radii = self.connectivity.max_num_neighbors, self.connectivity.radii()
+        for edge_type, (count, side, node) in zip(self.types, failure.detail[0]):
+            if count > cap:
+                node_type = edge_type[2] if side == 0 else edge_type[0]
+                where = f" at step {failure.step}" if self.what != "graph" else ""
+                raise ValueError(
+                    f"edge type {edge_type}{where}: {node_type} node {node} has more than max_num_neighbors={cap} "
+                    f"neighbours within radius {radii[edge_type]} (found {count}); set a larger max_num_neighbors "
+                    f"(e.g. {2 * count})")
 
 
 def node_graph(mesh_pos: Tensor, fixed: Tensor, mesh_batch: Tensor, num_graphs: int, material: Tensor | None = None,
@@ -118,32 +172,60 @@ def drop_mesh_pairs(index: Tensor, mesh_edges: Tensor, num_nodes: int) -> Tensor
     return index[:, ~torch.isin(index[0] * num_nodes + index[1], mesh_edges[0] * num_nodes + mesh_edges[1])]
 
 
+def drop_self_loops(index: Tensor, loops: int) -> Tensor:
+    """The pairs of `index` [2, E] that are no self loops, in their order, given that it holds `loops` of
+    them (each node found itself): a scatter to positions counted by a cumulative sum, where a boolean
+    mask would read the device to size its output. A query that returned more pairs than its cap may have
+    lost its own pair; then the neighbour check fails and the extra pair is cut."""
+    keep = index[0] != index[1]
+    size = max(index.size(1) - loops, 0)
+    target = torch.where(keep, torch.cumsum(keep, 0) - 1, size).clamp(max=size)
+    out = index.new_empty(2, size + 1)
+    out.scatter_(1, target.expand(2, -1), index)
+    return out[:, :size]
+
+
+def neighbour_counts(index: Tensor, size: int) -> Tensor:
+    """How often each of `size` nodes occurs in `index` [E] (long [size]; a scatter, so no sync where
+    `torch.bincount` would read the largest index back to size its output)."""
+    return torch.zeros(size, dtype=torch.long, device=index.device).index_add_(0, index, torch.ones_like(index))
+
+
 def add_radius_edges(data: HeteroData, edge_type: tuple[str, str, str], radius: float, max_num_neighbors: int) -> Tensor:
     """Adds the radius edges of `edge_type` (src, relation, dst) within each graph, with their
     features: for src == dst the symmetric pairs without self loops (WORLD_EDGE without the mesh
     edges already in `data`), else the pairs and their flipped copy as (dst, relation, src). Returns
-    the largest neighbour count of a node in the query (0-d tensor; more than `max_num_neighbors`
-    means edges were dropped: `check_neighbour_caps` raises), without syncing the device."""
+    long [3]: the largest neighbour count of a node in the query (more than `max_num_neighbors` means
+    edges were dropped: `NeighbourCheck` raises), the side of that node (0: dst, 1: src) and its index,
+    without syncing the device."""
     src, _, dst = edge_type
     pos = {t: data[t].pos for t in (src, dst)}
     batch = {t: data[t].batch for t in (src, dst)}
     cap = max_num_neighbors + 1
     if src == dst:  # symmetric: (neighbour, query) pairs, self loops removed
-        index = torch_cluster.radius_graph(pos[src], radius, batch[src], max_num_neighbors=cap, batch_size=data.num_graphs)
-        counts = [torch.bincount(index[1], minlength=pos[src].size(0))]
+        n = pos[src].size(0)
+        # torch_cluster.radius_graph with its self-loop filter done here without a sync: each node finds itself
+        # (so a query returns up to cap + 1 pairs, and its neighbours are one fewer)
+        index = torch_cluster.radius(pos[src], pos[src], radius, batch[src], batch[src], max_num_neighbors=cap + 1,
+                                     batch_size=data.num_graphs).flip(0)
+        counts = [neighbour_counts(index[1], n) - 1]
+        index = drop_self_loops(index, n)
         if edge_type == WORLD_EDGE and MESH_EDGE in data.edge_types:
             index = drop_mesh_pairs(index, data[MESH_EDGE].edge_index, pos[src].size(0))
         edge_sets = {edge_type: index}
     else:  # one query (row 0 indexes dst, row 1 src), flipped for the reverse type
         pairs = torch_cluster.radius(pos[src], pos[dst], radius, batch[src], batch[dst], max_num_neighbors=cap,
                                      batch_size=data.num_graphs)
-        counts = [torch.bincount(pairs[0], minlength=pos[dst].size(0)), torch.bincount(pairs[1], minlength=pos[src].size(0))]
+        counts = [neighbour_counts(pairs[0], pos[dst].size(0)), neighbour_counts(pairs[1], pos[src].size(0))]
         edge_sets = {edge_type: pairs.flip(0), (dst, edge_type[1], src): pairs}
     for et, index in edge_sets.items():
         if index.size(1) > 0:
             data[et].edge_index = index
             data[et].edge_attr = relative_features(data[et[0]].pos, data[et[2]].pos, index)
-    return torch.cat(counts).max()
+    both = torch.cat(counts)
+    at = both.argmax()
+    side = (at >= counts[0].size(0)).long()
+    return torch.stack([both[at], side, at - side * counts[0].size(0)])
 
 
 def _check_shape(name: str, tensor: Tensor, shape: tuple) -> None:
@@ -151,11 +233,9 @@ def _check_shape(name: str, tensor: Tensor, shape: tuple) -> None:
         raise ValueError(f"{name} must have shape {tuple(shape)}, got {tuple(tensor.shape)}")
 
 
-def _check_inputs(data: HeteroData, mesh_rest: Tensor, mesh_edges: Tensor, fixed: Tensor, num_graphs: int) -> None:
-    """Shapes on the host, then one device sync for the value checks (sorted batch vectors in
-    [0, num_graphs), mesh edges in range and inside one graph)."""
+def _check_shapes(data: HeteroData, mesh_rest: Tensor, mesh_edges: Tensor, fixed: Tensor, num_graphs: int) -> None:
+    """The shapes of the inputs (host values, no sync)."""
     pos = {t: data[t].pos for t in data.node_types}
-    batch = {t: data[t].batch for t in data.node_types}
     n, d = pos["mesh"].shape
     if num_graphs < 1 or n < 1:
         raise ValueError(f"need num_graphs >= 1 and at least one mesh node, got {num_graphs} graphs and {n} nodes")
@@ -163,33 +243,12 @@ def _check_inputs(data: HeteroData, mesh_rest: Tensor, mesh_edges: Tensor, fixed
     _check_shape("fixed", fixed, (n,))
     if mesh_edges.dim() != 2 or mesh_edges.size(0) != 2:
         raise ValueError(f"mesh_edges must have shape [2, E], got {tuple(mesh_edges.shape)}")
-    checks = {}
     for node_type, p in pos.items():
         if p.dim() != 2 or p.size(1) != d:
             raise ValueError(f"{node_type} positions must have shape [*, {d}], got {tuple(p.shape)}")
-        b = batch[node_type]
-        _check_shape(f"{node_type} batch", b, (p.size(0),))
-        checks[f"{node_type} batch sorted and in [0, {num_graphs})"] = (
-            (b[1:] >= b[:-1]).all() & (b.min() >= 0) & (b.max() < num_graphs)
-        )
-    if mesh_edges.size(1) > 0:
-        inside = (mesh_edges.min() >= 0) & (mesh_edges.max() < n)
-        ends = batch["mesh"][mesh_edges.clamp(0, n - 1)]
-        checks[f"mesh_edges in [0, {n}) and inside one graph"] = inside & (ends[0] == ends[1]).all()
-    failed = [name for name, ok in zip(checks, torch.stack(list(checks.values())).tolist()) if not ok]
-    if failed:
-        raise ValueError(f"invalid graph inputs, expected: {'; '.join(failed)}")
+        _check_shape(f"{node_type} batch", data[node_type].batch, (p.size(0),))
 
 
-def check_neighbour_caps(most: dict, connectivity: Connectivity) -> None:
-    """Raise when a radius query may have dropped neighbours: `most` maps edge types to the largest
-    neighbour count `add_radius_edges` returned (one device sync for all)."""
-    if not most:
-        return
-    cap, radii = connectivity.max_num_neighbors, connectivity.radii()
-    for edge_type, count in zip(most, torch.stack(list(most.values())).tolist()):
-        if count > cap:
-            raise ValueError(
-                f"edge type {edge_type}: a node has more than max_num_neighbors={cap} neighbours within radius "
-                f"{radii[edge_type]} (found {count}); set a larger max_num_neighbors (e.g. {2 * count})"
-            )
+def check_values(data: HeteroData, mesh_edges: Tensor, num_graphs: int) -> None:
+    """One device sync for the value checks of a graph's inputs (`check_batch_vectors`)."""
+    check_batch_vectors({t: data[t].batch for t in data.node_types}, mesh_edges, num_graphs)

@@ -39,16 +39,20 @@ import torch
 from torch import Tensor, nn
 from torch_geometric.data import HeteroData
 
+from ..evaluation.capture import StaticStep
 from ..evaluation.evaluate import MetricTable, evaluate_batch, metrics_markdown
 from ..evaluation.rollout import rollout
 from ..evaluation.schedules import EveryK, Schedule, effective_schedule, parse_schedule
 from ..batch import TrajectoryBatch
 from ..checkpoints import CHECKPOINT_FORMAT, FORMAT_KEY, CheckpointError, check_format, read_checkpoint
+from ..checks import DeferredCheck
+from ..graphs.build import NeighbourCheck
 from ..graphs.connectivity import Connectivity, load_connectivity
 from ..graphs.state import state_graph
 from ..graphs.types import MESH_EDGE
+from ..phases import host_side, phase
 from ..reports import write_json, write_text
-from .core import EncodeProcessDecode, graph_features
+from .core import EncodeProcessDecode, graph_features, inverse_counts
 from .lr_schedule import scheduled_lr, validate_schedule
 from .normalization import DEFAULT_STD_FLOOR, Normalizer, merge_across
 from .training_noise import smooth_field
@@ -143,6 +147,10 @@ class GraphSimulator(pl.LightningModule):
         self.target_normalizer = Normalizer(dim, std_floor)
         self.lstm = nn.LSTMCell(latent, latent) if self.recurrent else None
         self._test_table: MetricTable | None = None
+        self.static_rollouts, self._static_step = False, None  # `rollout_step`
+        # the hot path's checks, read at logging intervals (`raise_if_checks_failed`), not in every step
+        self.loss_check = DeferredCheck()
+        self.neighbour_check = NeighbourCheck(self.connectivity, what="training")
 
     @staticmethod
     def input_dims(connectivity: Connectivity, dim: int, with_material: bool) -> tuple[dict, dict]:
@@ -180,16 +188,30 @@ class GraphSimulator(pl.LightningModule):
         """Displacement of every mesh node [N_mesh, d] for a single step (no recurrent state)."""
         return self.step(graph)[0]
 
+    def rollout_step(self):
+        """The step function `evaluate`, `rollout` and `predict` roll out with: `step`, or with `static_rollouts`
+        set (a runtime setting, e.g. by the `StaticRollouts` callback) a `StaticStep` on static-shape graphs,
+        captured as a CUDA graph on a GPU (`evaluation.capture`; kept between calls, so validations reuse it)."""
+        if not self.static_rollouts:
+            return self.step
+        device = next(self.parameters()).device
+        if self._static_step is None or self._static_step.buffers.device != device:
+            self._static_step = StaticStep(self)
+        return self._static_step
+
     # ---- training -------------------------------------------------------------------------
     def training_graphs(self, batch: TrajectoryBatch, train: bool = True) -> list[tuple[HeteroData, Tensor]]:
         """(graph, target displacement [sumN, d]) for each transition of a window batch. train: noise
-        and per-window imputation draws; otherwise no noise and point clouds whenever the model uses them."""
+        and per-window imputation draws; otherwise no noise and point clouds whenever the model uses them.
+        The imputation draws come from the host's generator, so which windows see their points is known
+        without reading the device (`graphs.state.select_points`)."""
         if train and self.uses_points:
-            use_points = torch.rand(batch.num_graphs, device=self.device) < self.hparams.point_probability
+            use_points = host_side(torch.rand(batch.num_graphs) < self.hparams.point_probability)
         else:
             use_points = self.uses_points
         free = ~batch.fixed[:, None]
         samples = []
+        self.neighbour_check.step = self.global_step
         for t in range(batch.num_steps - 1):
             pos = batch.positions[t]
             if train and self.hparams.noise_std > 0:
@@ -200,9 +222,9 @@ class GraphSimulator(pl.LightningModule):
                                      self.hparams.noise_field_wavelength,
                                      mixture=self.hparams.noise_field_mixture)
                 if self.hparams.noise_field_points_only:
-                    field = field * use_points[batch.mesh_batch, None]
+                    field = field * use_points.to(pos.device, non_blocking=True)[batch.mesh_batch, None]
                 pos = pos + field * free
-            graph = state_graph(batch, t, pos, use_points, self.connectivity, self.with_material)
+            graph = state_graph(batch, t, pos, use_points, self.connectivity, self.with_material, self.neighbour_check)
             samples.append((graph, batch.positions[t + 1] - pos))
         return samples
 
@@ -214,11 +236,15 @@ class GraphSimulator(pl.LightningModule):
                     by_points: bool = False) -> Tensor | tuple[Tensor, dict[str, Tensor]]:
         """Mean over the window's transitions of the normalized-target MSE on free mesh nodes. by_points:
         also {"points": ..., "no_points": ...}, the mean per-sample loss (one window's free nodes at one
-        transition) of the graphs with / without a point cloud, a group absent from the batch left out."""
-        free = ~batch.fixed
-        if not free.any():
+        transition) of the graphs with / without a point cloud, a group absent from the batch left out.
+        A non-finite loss is recorded in `loss_check` (read by `raise_if_checks_failed`), not raised here."""
+        free = batch.free_index
+        if len(free) == 0:
             raise ValueError("batch has no free mesh nodes: nothing to train on")
-        state, losses, samples, with_points = None, [], [], []
+        state, losses, samples, with_points, present = None, [], [], [], set()
+        if by_points:  # the graph of each free node, and 1 / free nodes per graph
+            owner = batch.mesh_batch.index_select(0, free)
+            inv_free = inverse_counts(owner, batch.num_graphs, batch.positions)[:, 0]
         burn_in = batch.num_steps - 1 - self.backprop_steps if self.backprop_steps else 0
         for t, (graph, target) in enumerate(self.training_graphs(batch, train)):
             if t < burn_in:  # truncated backpropagation: these steps only carry the recurrent state forward
@@ -226,26 +252,52 @@ class GraphSimulator(pl.LightningModule):
                     _, state = self.predict_normalized(graph, state)
                 continue
             out, state = self.predict_normalized(graph, state)
-            squared = (out[free] - self.target_normalizer(target[free])).square()  # [free nodes, d]
-            extra = self.auxiliary_loss(graph, batch, t, train)
-            losses.append(squared.mean() if extra is None else squared.mean() + extra)
+            with phase("loss"):
+                squared = (out.index_select(0, free) - self.target_normalizer(target.index_select(0, free))).square()
+                extra = self.auxiliary_loss(graph, batch, t, train)
+                loss = squared.mean() if extra is None else squared.mean() + extra
+            with phase("checks"):
+                self._record_loss(loss, squared, free, batch, t)
+            losses.append(loss)
             if by_points:
-                error, owner = squared.mean(dim=1), batch.mesh_batch[free]
-                samples.append(error.new_zeros(batch.num_graphs).index_add_(0, owner, error)
-                               / torch.bincount(owner, minlength=batch.num_graphs).clamp(min=1))
+                error = squared.mean(dim=1)
+                per_graph = error.new_zeros(batch.num_graphs)
+                samples.append(per_graph.index_add_(0, owner, error) * inv_free)
                 has = torch.zeros(batch.num_graphs, dtype=torch.bool, device=error.device)
                 if "point" in graph.node_types:
                     has[graph["point"].batch] = True
                 with_points.append(has)
-        loss = torch.stack(losses).mean()
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"non-finite training loss {loss.item()} at global step {self.global_step}")
+                present |= set(graph.points_seen)
+        loss = torch.stack(losses).mean() if len(losses) > 1 else losses[0]
         if not by_points:
             return loss
-        samples, with_points = torch.cat(samples), torch.cat(with_points)
-        groups = {name: samples[mask].mean() for name, mask in (("points", with_points), ("no_points", ~with_points))
-                  if mask.any()}
+        samples, with_points = torch.cat(samples), torch.cat(with_points).to(samples[0].dtype)
+        groups = {name: (samples * mask).sum() / mask.sum() for name, mask, seen in
+                  (("points", with_points, True), ("no_points", 1 - with_points, False)) if seen in present}
         return loss, groups
+
+    def _record_loss(self, loss: Tensor, squared: Tensor, free: Tensor, batch: TrajectoryBatch, t: int) -> None:
+        """Record in `loss_check` whether transition t's loss is non-finite, with its value, the trajectory
+        of the batch and the mesh node (within it) of the first free node whose squared error is not finite."""
+        bad = ~torch.isfinite(squared).all(dim=1)
+        first = free[bad.to(torch.uint8).argmax()]
+        trajectory = batch.mesh_batch[first]
+        node = first - (batch.mesh_batch < trajectory).sum()
+        self.loss_check.record(~torch.isfinite(loss.detach()), self.global_step, loss.detach(), trajectory, node,
+                               torch.full((), t, device=loss.device))
+
+    def raise_if_checks_failed(self) -> None:
+        """Read the deferred checks of the steps so far (one sync): a non-finite training loss raises
+        FloatingPointError naming the global step, the trajectory of the batch and the node; a node over the
+        neighbour cap raises the graph builder's ValueError naming the step."""
+        self.neighbour_check.raise_if_failed()
+        failure = self.loss_check.failure()
+        if failure is not None:
+            self.loss_check.reset()
+            value, trajectory, node, t = failure.detail
+            raise FloatingPointError(f"non-finite training loss {value} at global step {failure.step} (transition {t} "
+                                     f"of the window; the first non-finite error: mesh node {node} of trajectory "
+                                     f"{trajectory} of the batch)")
 
     def auxiliary_loss(self, graph: HeteroData, batch: TrajectoryBatch, t: int = 0,
                        train: bool = False) -> Tensor | None:
@@ -259,10 +311,27 @@ class GraphSimulator(pl.LightningModule):
     def training_step(self, batch: TrajectoryBatch, batch_idx: int) -> Tensor:
         loss, groups = self.window_loss(batch, train=True, by_points=True)
         sync = self._world_size() > 1  # under DDP the logged loss is the mean over the ranks' batches
-        self.log("train/loss", loss, batch_size=batch.num_graphs, prog_bar=True, sync_dist=sync)
+        # not on the progress bar: Lightning reads progress-bar values back from the device after every batch
+        self.log("train/loss", loss, batch_size=batch.num_graphs, sync_dist=sync)
         for name, value in groups.items():  # a group absent from one rank's batch: that rank's value alone
             self.log(f"train/loss_{name}", value.detach(), batch_size=batch.num_graphs)
         return loss
+
+    def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
+        """The deferred checks are read when Lightning logs (every `log_every_n_steps`), where it reads the
+        device anyway."""
+        every = self.trainer.log_every_n_steps if self._trainer is not None else 1
+        if self.global_step % max(every, 1) == 0:
+            self.raise_if_checks_failed()
+
+    def on_train_epoch_end(self) -> None:
+        self.raise_if_checks_failed()
+
+    def on_validation_epoch_end(self) -> None:
+        self.raise_if_checks_failed()
+
+    def on_train_end(self) -> None:
+        self.raise_if_checks_failed()
 
     def validation_step(self, batch: TrajectoryBatch, batch_idx: int) -> None:
         # under DDP each rank validates its share of the windows: the logged loss is the ranks' mean, so that
@@ -339,14 +408,15 @@ class GraphSimulator(pl.LightningModule):
         schedules = self.schedules if schedules is None else schedules
         one_step = effective_schedule(EveryK(1), self.uses_points)
         with torch.no_grad():
-            return evaluate_batch(self.step, batch, self.connectivity, schedules, with_material=self.with_material,
+            return evaluate_batch(self.rollout_step(), batch, self.connectivity, schedules,
+                                  with_material=self.with_material,
                                   one_step_schedule=one_step, **kwargs)
 
     def rollout(self, batch: TrajectoryBatch, schedule: Schedule | str) -> Tensor:
         """Positions [T, sumN, d] of a rollout of `batch` from S_0 under `schedule`."""
         schedule = parse_schedule(schedule) if isinstance(schedule, str) else schedule
         with torch.no_grad():
-            return rollout(self.step, batch, schedule, self.connectivity, self.with_material)[0]
+            return rollout(self.rollout_step(), batch, schedule, self.connectivity, self.with_material)[0]
 
     def on_test_epoch_start(self) -> None:
         self._test_table = MetricTable()
@@ -386,6 +456,7 @@ class GraphSimulator(pl.LightningModule):
         return {k: v[None] for k, v in states.items()}
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
+        self.raise_if_checks_failed()  # a step since the last read that went non-finite is never saved
         checkpoint["connectivity"] = dataclasses.asdict(self.connectivity)
         checkpoint["simulator_class"] = type(self).__name__
         checkpoint[FORMAT_KEY] = CHECKPOINT_FORMAT
@@ -416,6 +487,7 @@ class GraphSimulator(pl.LightningModule):
             warnings.warn(f"connectivity preset {self.hparams.connectivity!r} changed since the checkpoint was "
                           f"written; using the checkpoint's radii {saved}", stacklevel=2)
             self.connectivity = Connectivity.from_dict(saved)
+            self.neighbour_check = NeighbourCheck(self.connectivity, what="training")
 
 
 class GGNS(GraphSimulator):
@@ -515,7 +587,7 @@ class GGNSID(GGNS):
         mean, log_var, has = self.estimate(self.estimator_graph(graph, batch, t) if train else graph)
         label = self.material_normalizer(batch.material.to(mean.dtype)[:, None])[:, 0]
         nll = 0.5 * (log_var + (label - mean).square() * torch.exp(-log_var))
-        return self.hparams.material_loss_weight * nll[has].mean()
+        return self.hparams.material_loss_weight * (nll * has).sum() / has.sum()  # has.sum() >= 1: points are there
 
     def estimator_graph(self, graph: HeteroData, batch: TrajectoryBatch, t: int) -> HeteroData:
         """What the estimator trains on for sample `graph` (transition t of `batch`): the sample itself, or,

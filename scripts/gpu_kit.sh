@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Make the kit scripts/gpu_check.sh needs on a GPU machine without a package registry (run here, after
 # scripts/setup.sh): Python 3.12 wheels of the pure-Python packages such a machine lacks, the
-# torch-cluster sources, the plate_tiny12 splits of tests/test_cuda.py, and optionally the speed/accuracy
-# inputs (plate_small's test split and checkpoints, stripped of optimizer states to travel light).
+# torch-cluster sources, the plate_tiny12 splits of tests/test_cuda.py, plate_small's test split (the
+# speed measurements' data), the baseline commit's sources (BASELINE, default e59b184: `bench ab` on the
+# GPU compares against it), and optionally checkpoints (stripped of optimizer states to travel light).
 #   bash scripts/gpu_kit.sh [KIT] [NAME=CHECKPOINT ...]
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -43,7 +44,9 @@ for spec in sys.argv[2:]:
     torch.save(kept, kit / "ckpt" / f"{name}.ckpt")
     print(f"{name}: {path}")
 EOF
-if [ -f data/plate_small/test.h5 ] && [ -n "$(ls "$KIT"/ckpt)" ]; then
-  mkdir -p "$KIT/plate_small" && cp data/plate_small/test.h5 "$KIT/plate_small/test.h5"
-fi
+[ -f data/plate_small/test.h5 ] || $PY -m ggns generate --config plate_small --split test
+mkdir -p "$KIT/plate_small" && cp data/plate_small/test.h5 "$KIT/plate_small/test.h5"
+BASELINE=${BASELINE:-e59b184}
+rm -rf "$KIT/baseline" && mkdir -p "$KIT/baseline" && git archive "$BASELINE" src conf | tar -x -C "$KIT/baseline"
+echo "$BASELINE" > "$KIT/baseline/COMMIT"
 du -sh "$KIT"

@@ -138,3 +138,74 @@ def test_fit_on_the_gpu_and_test_on_both_devices(config, cli_data, tmp_path):
         assert math.isclose(metrics["gpu"][name], value, rel_tol=1e-3, abs_tol=1e-9), (name, value, metrics["gpu"][name])
     model = load_simulator(last, map_location="cuda")
     assert next(model.parameters()).device.type == "cuda"
+
+
+# ---- the hot path on the GPU (tests/test_hotpath.py on the CPU) ------------------------------------------
+def _fitted(cls, splits, **kwargs):
+    torch.manual_seed(0)
+    model = make(cls, latent=32, blocks=2, **kwargs)
+    model.fit_normalizers([collate([splits["train"][0].steps(0, 2), splits["train"][1].steps(3, 5)])])
+    return model.to(CUDA)
+
+
+@pytest.mark.parametrize("cls", [GGNS, MGNM], ids=lambda c: c.__name__)
+def test_the_captured_step_replays_the_eager_rollouts(cls, splits):
+    from ggns.evaluation.capture import StaticStep
+    from ggns.evaluation.rollout import rollout
+
+    model = _fitted(cls, splits).eval()
+    val = TrajectoryBatch.from_trajectories(splits["val"], device=CUDA)
+    step = StaticStep(model)
+    assert step.capture
+    for schedule in ([EveryK(1), EveryK(3), Never()] if model.uses_points else [Never()]):
+        eager, _ = rollout(model.step, val, schedule, model.connectivity, model.with_material)
+        replayed, _ = rollout(step, val, schedule, model.connectivity, model.with_material)
+        torch.testing.assert_close(replayed, eager, rtol=1e-4, atol=1e-6)
+    assert 1 <= step.recordings <= 4  # captured once, again only when a capacity grew
+
+
+def _syncs(run) -> int:
+    import warnings
+
+    torch.cuda.synchronize()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            run()
+            torch.cuda.synchronize()
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    return sum("synchroniz" in str(w.message) for w in caught) - 1  # the final synchronize
+
+
+def test_a_training_step_synchronizes_only_in_its_radius_queries(splits):
+    """GGNS's training step on the GPU: as many synchronizations as radius queries (their edge counts are
+    data), none from checks, losses, masks or the optimizer."""
+    model = _fitted(GGNS, splits)
+    batch = collate([splits["train"][0].steps(0, 2), splits["train"][1].steps(3, 5)]).to(CUDA)
+    optimizer = torch.optim.Adam(model.parameters())
+
+    def train():
+        loss = model.window_loss(batch)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+    train()  # warm-up (first calls may initialize lazily)
+    queries = sum(r > 0 for r in model.connectivity.radii().values())
+    assert _syncs(train) <= queries
+    with torch.no_grad():
+        model.core.decoder[-1].bias.fill_(float("nan"))
+    model.window_loss(batch)  # recorded on the device, not raised
+    with pytest.raises(FloatingPointError, match="non-finite training loss nan at global step 0"):
+        model.raise_if_checks_failed()
+
+
+def test_the_step_profile_runs_on_the_gpu(cli_data, tmp_path):
+    from ggns.bench.profile import profile
+
+    report = profile("ggns", str(cli_data / TINY12), latent=8, blocks=2, batch_size=2, steps=2, warmup=1,
+                     device="cuda", fit_steps=3, output=str(tmp_path))
+    for key in ("training", "rollout"):
+        assert report[key]["kernel launches per step"] > 0 and "CUDA synchronizations per step" in report[key]

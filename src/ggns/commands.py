@@ -538,7 +538,7 @@ def paper(task: Literal["plate", "tissue", "cavity"] = "plate", summary: dict[st
 def bench_profile(model: str = "ggns", dataset: str = "plate_small", latent: int = 128, blocks: int = 5,
                   batch_size: int = 32, rollout_trajectories: int = 1, schedule: str = "every:1",
                   device: Literal["cpu", "cuda"] = "cpu", steps: int = 10, warmup: int = 3, fit_steps: int = 0,
-                  output_dir: str | None = None) -> dict:
+                  output_dir: str | None = None, compile: bool = False, static: bool = False) -> dict:
     """Where the time of a training step and a rollout step goes: phases, operators or kernels, host reads, matrix share.
 
     Args:
@@ -554,16 +554,41 @@ def bench_profile(model: str = "ggns", dataset: str = "plate_small", latent: int
         warmup: steps before the timing
         fit_steps: also a Lightning fit of this many steps, against the bare loop (0: none)
         output_dir: write profile.json and profile.md here
+        compile: compile the message-passing blocks (torch.compile, dynamic shapes)
+        static: roll out on static-shape graphs (CUDA-graph replays on a GPU)
     """
     from .bench.profile import profile
 
     return profile(model, dataset, latent=latent, blocks=blocks, batch_size=batch_size,
                    rollout_trajectories=rollout_trajectories, schedule=schedule, device=device, steps=steps,
-                   warmup=warmup, fit_steps=fit_steps, output=output_dir)
+                   warmup=warmup, fit_steps=fit_steps, output=output_dir, compile=compile, static=static)
+
+
+def bench_precision(checkpoint: dict[str, str] | None = None, dataset: str = "plate_small", trajectories: int = 9,
+                    schedules: Sequence[str] = ("every:1", "every:5", "never"),
+                    modes: Sequence[str] = ("float32", "bf16", "tf32"), device: Literal["cpu", "cuda"] = "cpu",
+                    output_dir: str | None = None) -> list[dict]:
+    """The shipped (or any) simulators' test metrics in float32, bf16 autocast and, on a GPU, TF32.
+
+    Args:
+        checkpoint: name=path or name=pretrained name (default: plate/ggns, plate/mgn and plate/mgn_m)
+        dataset: data preset whose test trajectories are scored
+        trajectories: test trajectories scored
+        schedules: point-cloud schedules of the rollouts
+        modes: float32 (always run, the reference), bf16, tf32 (GPU only)
+        device: where the models run
+        output_dir: write precision.csv and precision.md here
+    """
+    from .bench.precision import bench_precision as run
+
+    checkpoints = dict(checkpoint or {name: name for name in ("plate/ggns", "plate/mgn", "plate/mgn_m")})
+    return run(checkpoints, dataset, trajectories=trajectories, schedules=tuple(schedules), modes=tuple(modes),
+               device=device, output_dir=output_dir)
 
 
 def bench_ab(baseline: str, probe: Sequence[str] | None = None, rounds: int = 5, candidate: str | None = None,
-             output_dir: str | None = None, threads: int | None = None) -> list[dict]:
+             output_dir: str | None = None, threads: int | None = None,
+             device: Literal["cpu", "cuda"] = "cpu") -> list[dict]:
     """This checkout against a baseline commit, in one run on this machine (probes alternate between them).
 
     Args:
@@ -574,12 +599,13 @@ def bench_ab(baseline: str, probe: Sequence[str] | None = None, rounds: int = 5,
         candidate: the tree measured against the baseline (default: this checkout)
         output_dir: write ab_raw.csv and ab_summary.md here
         threads: OMP_NUM_THREADS of the probes (default: torch's own choice)
+        device: where the probes run
     """
     from .bench.ab import DEFAULT_PROBES, ROOT
     from .bench.ab import bench_ab as run
 
     return run(baseline, tuple(probe) if probe else DEFAULT_PROBES, rounds=rounds,
-               candidate=candidate or str(ROOT), output=output_dir, threads=threads)
+               candidate=candidate or str(ROOT), output=output_dir, threads=threads, device=device)
 
 
 COMMANDS = {
@@ -589,7 +615,7 @@ COMMANDS = {
     "bench": {"sim": bench_sim, "solvers": bench_solvers, "models": bench_models, "tradeoff": bench_tradeoff,
               "stability": bench_stability,
               "learning": bench_learning, "ab": bench_ab,
-              "profile": bench_profile},
+              "profile": bench_profile, "precision": bench_precision},
     "export": export,
     "rollout": rollout,
     "diagnose": diagnose,

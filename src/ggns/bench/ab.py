@@ -39,10 +39,11 @@ def source_tree(spec: str, scratch: Path) -> Path:
     return target / "src"
 
 
-def run_probe(tree: Path, probe: str, threads: int | None) -> dict:
+def run_probe(tree: Path, probe: str, threads: int | None, device: str = "cpu") -> dict:
     """One probe in a subprocess importing ggns from `tree`; its JSON line (ValueError with its stderr
     if it fails)."""
-    env = {**os.environ, "PYTHONPATH": str(tree)}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), *filter(None, [os.environ.get("PYTHONPATH")])]),
+           "GGNS_PROBE_DEVICE": device}
     if threads:
         env["OMP_NUM_THREADS"] = str(threads)
     done = subprocess.run([sys.executable, str(PROBE), *probe.split()], cwd=ROOT, env=env, capture_output=True,
@@ -54,7 +55,7 @@ def run_probe(tree: Path, probe: str, threads: int | None) -> dict:
 
 
 def bench_ab(baseline: str, probes: tuple[str, ...] = DEFAULT_PROBES, rounds: int = 5, candidate: str = str(ROOT),
-             output: str | None = None, threads: int | None = None) -> list[dict]:
+             output: str | None = None, threads: int | None = None, device: str = "cpu") -> list[dict]:
     if rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
     with tempfile.TemporaryDirectory() as scratch:
@@ -65,7 +66,7 @@ def bench_ab(baseline: str, probes: tuple[str, ...] = DEFAULT_PROBES, rounds: in
                 order = list(trees) if r % 2 == 0 else list(reversed(trees))
                 for probe in probes:
                     for name in order:
-                        result = run_probe(trees[name], probe, threads)
+                        result = run_probe(trees[name], probe, threads, device)
                         value_key = "steps/s" if "steps/s" in result else "ms"
                         raw.append({"round": r, "probe": probe, "tree": name, "unit": value_key,
                                     "value": result[value_key]})
@@ -77,7 +78,7 @@ def bench_ab(baseline: str, probes: tuple[str, ...] = DEFAULT_PROBES, rounds: in
                     subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree.parent)],
                                    capture_output=True)
     rows = summarize(raw)
-    text = summary_markdown(rows, baseline, candidate, rounds)
+    text = summary_markdown(rows, baseline, candidate, rounds, device)
     print("\n" + text)
     if output is not None:
         out = Path(output)
@@ -106,8 +107,8 @@ def summarize(raw: list[dict]) -> list[dict]:
     return rows
 
 
-def summary_markdown(rows: list[dict], baseline: str, candidate: str, rounds: int) -> str:
-    lines = [f"bench ab: candidate {candidate} against baseline {baseline}, {rounds} rounds, trees alternating",
+def summary_markdown(rows: list[dict], baseline: str, candidate: str, rounds: int, device: str = "cpu") -> str:
+    lines = [f"bench ab on {device}: candidate {candidate} against baseline {baseline}, {rounds} rounds, trees alternating",
              "", "| probe | unit | baseline (median) | candidate (median) | speed-up (median of rounds) | range |",
              "|---|---|---|---|---|---|"]
     for r in rows:

@@ -4,19 +4,31 @@ commit), so it imports nothing of its own tree and uses only the API both trees 
 models, `window_loss`, the rollout engine, a Lightning fit). Prints one JSON line.
 
     python probe.py train  MODEL LATENT BLOCKS BATCH [ITERATIONS]     ms per optimizer iteration
-    python probe.py rollout MODEL LATENT BLOCKS TRAJECTORIES SCHEDULE [STEPS]   ms per rollout step
+    python probe.py rollout MODEL LATENT BLOCKS TRAJECTORIES SCHEDULE [static]   ms per rollout step
     python probe.py fit    MODEL LATENT BLOCKS BATCH [STEPS]          Lightning fit steps/s
 
-Data: plate_small (generated beforehand); weights random (speed does not depend on them), seeded.
+`static`: roll out with the model's static step where its tree has one (`GraphSimulator.rollout_step`),
+else its plain step. The device is GGNS_PROBE_DEVICE (default cpu). Data: plate_small (generated
+beforehand); weights random (speed does not depend on them), seeded.
 """
 from __future__ import annotations
 
 import itertools
 import json
+import os
 import statistics
 import sys
 import time
 import warnings
+
+DEVICE = os.environ.get("GGNS_PROBE_DEVICE", "cpu")
+
+
+def _sync():
+    import torch
+
+    if DEVICE.startswith("cuda"):
+        torch.cuda.synchronize()
 
 
 def _setup(model_name: str, latent: int, blocks: int, batch_size: int):
@@ -27,7 +39,7 @@ def _setup(model_name: str, latent: int, blocks: int, batch_size: int):
     warnings.filterwarnings("ignore")
     torch.manual_seed(0)
     data = SimulationDataModule("plate_small", batch_size=batch_size, generate_missing=False)
-    model = MODELS[model_name](dim=data.dim, latent=latent, blocks=blocks)
+    model = MODELS[model_name](dim=data.dim, latent=latent, blocks=blocks).to(DEVICE)
     data.train_window = model.window
     return torch, data, model
 
@@ -36,7 +48,7 @@ def _batches(data, count: int) -> list:
     batches = []
     while len(batches) < count:
         batches += list(itertools.islice(iter(data.train_dataloader()), count - len(batches)))
-    return batches
+    return [b.to(DEVICE) for b in batches]
 
 
 def train(model_name: str, latent: int, blocks: int, batch_size: int, iterations: int = 30) -> dict:
@@ -47,17 +59,20 @@ def train(model_name: str, latent: int, blocks: int, batch_size: int, iterations
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
     times = []
     for i, batch in enumerate(batches[5:]):
+        _sync()
         start = time.perf_counter()
         loss = model.window_loss(batch, train=True)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
+        _sync()
         if i >= 5:
             times.append(time.perf_counter() - start)
     return {"ms": 1e3 * statistics.median(times), "iterations": len(times)}
 
 
-def rollout(model_name: str, latent: int, blocks: int, trajectories: int, schedule: str, steps: int = 20) -> dict:
+def rollout(model_name: str, latent: int, blocks: int, trajectories: int, schedule: str, mode: str = "eager",
+            steps: int = 20) -> dict:
     torch, data, model = _setup(model_name, latent, blocks, 8)
     from ggns.batch import TrajectoryBatch
     from ggns.evaluation.rollout import rollout as run
@@ -66,13 +81,19 @@ def rollout(model_name: str, latent: int, blocks: int, trajectories: int, schedu
     model.fit_normalizers(_batches(data, 4))
     model.eval()
     tests = data.trajectories("test")
-    batch = TrajectoryBatch.from_trajectories([tests[i % len(tests)] for i in range(trajectories)])
+    batch = TrajectoryBatch.from_trajectories([tests[i % len(tests)] for i in range(trajectories)], device=DEVICE)
     plan = parse_schedule(schedule)
+    step = model.step
+    if mode == "static" and hasattr(model, "rollout_step"):
+        model.static_rollouts = True
+        step = model.rollout_step()
     times = []
     with torch.no_grad():
         for i in range(6):
+            _sync()
             start = time.perf_counter()
-            run(model.step, batch, plan, model.connectivity, model.with_material, steps=steps)
+            run(step, batch, plan, model.connectivity, model.with_material, steps=steps)
+            _sync()
             if i >= 1:
                 times.append((time.perf_counter() - start) / steps)
     return {"ms": 1e3 * statistics.median(times), "rollouts": len(times)}
@@ -91,7 +112,8 @@ def fit(model_name: str, latent: int, blocks: int, batch_size: int, steps: int =
     clock = Clock()
     trainer = pl.Trainer(max_steps=steps, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                          enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0,
-                         callbacks=[clock], log_every_n_steps=50)
+                         callbacks=[clock], log_every_n_steps=50,
+                         accelerator="gpu" if DEVICE.startswith("cuda") else "cpu", devices=1)
     trainer.fit(model, datamodule=data)
     return {"steps/s": (clock.steps - 20) / (clock.end - clock.start), "steps": clock.steps - 20}
 

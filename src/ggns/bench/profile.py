@@ -34,6 +34,7 @@ from ..data.module import SimulationDataModule
 from ..evaluation.rollout import DEVICE_CHECK_EVERY, rollout
 from ..evaluation.schedules import parse_schedule
 from ..models.simulators import MODELS
+from ..models.speed import compile_processor
 from ..reports import write_json, write_text
 from .models import MATMUL_OPS, train_batches_on, gemm_rate
 from .timing import resolve_device, sync
@@ -46,9 +47,11 @@ GEMM_KERNELS = ("gemm", "cutlass", "xmma", "cublas", "matmul")
 SOURCE = str(Path(__file__).resolve().parents[1])
 
 
-def _is_bool_index(index) -> bool:
+def _is_reading_index(index) -> bool:
+    """A boolean mask (its output size is data) or a 0-d integer tensor (read back as a Python int)."""
     items = index if isinstance(index, tuple) else (index,)
-    return any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in items)
+    return any(isinstance(i, torch.Tensor) and (i.dtype == torch.bool or (i.dim() == 0 and not i.is_floating_point()))
+               for i in items)
 
 
 class HostReads(TorchFunctionMode):
@@ -61,7 +64,7 @@ class HostReads(TorchFunctionMode):
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
         name = getattr(func, "__name__", str(func))
-        read = name in READS or (name in ("__getitem__", "__setitem__") and len(args) > 1 and _is_bool_index(args[1])) \
+        read = name in READS or (name in ("__getitem__", "__setitem__") and len(args) > 1 and _is_reading_index(args[1])) \
             or (name == "repeat_interleave" and "output_size" not in kwargs and len(args) > 1
                 and isinstance(args[1], torch.Tensor))
         if read and not (args and isinstance(args[0], torch.Tensor) and phases.is_host_side(args[0])):
@@ -199,9 +202,12 @@ def _lightning_fit(model_name: str, dataset: str, batch_size: int, kwargs: dict,
 
 def profile(model: str = "ggns", dataset: str = "plate_small", latent: int = 128, blocks: int = 5,
             batch_size: int = 32, rollout_trajectories: int = 1, schedule: str = "every:1", device: str = "cpu",
-            steps: int = 10, warmup: int = 3, fit_steps: int = 0, output: str | None = None) -> dict:
+            steps: int = 10, warmup: int = 3, fit_steps: int = 0, output: str | None = None,
+            compile: bool = False, static: bool = False) -> dict:
     """The step profile (module docstring); returns {"training": row, "rollout": row, ...} and writes it
-    as JSON and markdown to `output` (a folder) if given."""
+    as JSON and markdown to `output` (a folder) if given. compile: the processor's blocks compiled
+    (`models.speed.compile_processor`, timed after the warm-up compiled them); static: rollouts on
+    static-shape graphs (`GraphSimulator.static_rollouts`: CUDA-graph replays on a GPU)."""
     device = resolve_device(device)
     if model not in MODELS:
         raise ValueError(f"unknown model {model!r}; choose from {sorted(MODELS)}")
@@ -211,13 +217,16 @@ def profile(model: str = "ggns", dataset: str = "plate_small", latent: int = 128
     data = SimulationDataModule(dataset, batch_size=batch_size, generate_missing=False)
     kwargs = dict(latent=latent, blocks=blocks)
     simulator = MODELS[model](dim=data.dim, **kwargs).to(device)
+    if compile:
+        compile_processor(simulator)
+    simulator.static_rollouts = static
     batches = train_batches_on(data, simulator.window, 2 + warmup + steps, device)
     simulator.fit_normalizers(batches[:2])
     simulator.train()
     optimizer = torch.optim.Adam(simulator.parameters(), lr=1e-4)
     training = batches[2:]
     report = {"model": model, "dataset": dataset, "device": str(device), "latent": latent, "blocks": blocks,
-              "batch size": batch_size, "machine": _machine(device), "GEMM GFLOP/s": gemm_rate(device)}
+              "batch size": batch_size, "compiled processor": compile, "static rollouts": static, "machine": _machine(device), "GEMM GFLOP/s": gemm_rate(device)}
     print(f"bench profile: {model} training steps ...", flush=True)
     report["training"] = _measure("training", lambda i: _optimizer_step(simulator, training[i % len(training)],
                                                                          optimizer), steps, warmup, device)
@@ -232,7 +241,7 @@ def profile(model: str = "ggns", dataset: str = "plate_small", latent: int = 128
 
     def rollout_steps(i):  # the checks read as on a GPU, every DEVICE_CHECK_EVERY steps, whatever the device
         with torch.no_grad():
-            rollout(simulator.step, trajectories, plan, simulator.connectivity, simulator.with_material, steps=per_run,
+            rollout(simulator.rollout_step(), trajectories, plan, simulator.connectivity, simulator.with_material, steps=per_run,
                     check_every=DEVICE_CHECK_EVERY)
 
     print(f"bench profile: {model} rollout steps ({rollout_trajectories} trajectories, {schedule}) ...", flush=True)
@@ -276,9 +285,10 @@ def _machine(device: torch.device) -> str:
 
 
 def profile_markdown(report: dict) -> str:
+    options = [name for name in ("compiled processor", "static rollouts") if report.get(name)]
     head = (f"bench profile: {report['model']} (latent {report['latent']}, {report['blocks']} blocks) on "
             f"{report['dataset']}, batch {report['batch size']}, {report['device']} ({report['machine']}), "
-            f"GEMM rate {report['GEMM GFLOP/s']:.0f} GFLOP/s")
+            f"GEMM rate {report['GEMM GFLOP/s']:.0f} GFLOP/s" + (f"; {', '.join(options)}" if options else ""))
     lines = [head, ""]
     for key in ("training", "rollout"):
         row = report[key]

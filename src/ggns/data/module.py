@@ -199,8 +199,8 @@ class SimulationDataModule(pl.LightningDataModule):
         return self.seed if self.seed is not None else int(os.environ.get("PL_GLOBAL_SEED", 0))
 
     def _on_gpu(self) -> bool:
-        trainer = self.trainer
-        return trainer is not None and trainer.strategy.root_device.type == "cuda"
+        device = getattr(getattr(self.trainer, "strategy", None), "root_device", None)
+        return device is not None and device.type == "cuda"
 
     def _loader(self, dataset: Dataset, batch_size: int, sampler=None) -> DataLoader:
         # its own generator: creating an iterator (every epoch, every validation) draws the workers' base

@@ -227,3 +227,4 @@ class RolloutWriter(BasePredictionWriter):
             checkpoint_sha256=sha256(checkpoint) if checkpoint else "",
             input_file=str(Path(datamodule.path("test")).resolve()), scene=scene), overwrite=self.overwrite)
         print(f"wrote {path}")
+

@@ -16,12 +16,21 @@ Two ways to the volumes of two meshes and of their intersection:
 """
 from __future__ import annotations
 
-import manifold3d
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
 from ..geometry import boundary_facets, signed_volumes
+
+
+def _manifold3d():
+    """manifold3d, imported where the exact 3D IoU needs it (the rest of the evaluation runs without it)."""
+    try:
+        import manifold3d
+    except ImportError as error:
+        raise ImportError("the exact 3D volume IoU needs manifold3d (pip install manifold3d); "
+                          "method='sampled' does without it") from error
+    return manifold3d
 
 # a tetrahedron with 6|V| <= _DEGENERATE * (|e1|^2 + |e2|^2 + |e3|^2)^(3/2) covers no volume
 _DEGENERATE = 1e-12
@@ -97,7 +106,7 @@ def surface_self_intersects(positions: np.ndarray, faces: np.ndarray) -> bool:
     return False
 
 
-def exact_solid(positions: np.ndarray, cells: np.ndarray) -> tuple[manifold3d.Manifold | None, list[str]]:
+def exact_solid(positions: np.ndarray, cells: np.ndarray) -> tuple["manifold3d.Manifold | None", list[str]]:
     """The manifold3d solid bounded by a tetrahedral mesh's boundary, or why the exact
     (boundary-surface Boolean) volumes would be wrong for it.
 
@@ -129,7 +138,7 @@ def exact_solid(positions: np.ndarray, cells: np.ndarray) -> tuple[manifold3d.Ma
     faces = boundary_facets(cells, x)
     solid = _solid(x, faces)
     status = solid.status()
-    if status != manifold3d.Error.NoError:
+    if status != _manifold3d().Error.NoError:
         return None, [f"boundary surface is not a closed 2-manifold ({status.name})"]
     if surface_self_intersects(x, faces):
         return None, ["boundary surface intersects itself"]
@@ -138,24 +147,24 @@ def exact_solid(positions: np.ndarray, cells: np.ndarray) -> tuple[manifold3d.Ma
         volumes = np.array([part.volume() for part in parts])
         if (volumes <= 0).any():
             return None, [f"{int((volumes <= 0).sum())} inward-facing boundary components (cavities)"]
-        union = manifold3d.Manifold.batch_boolean(parts, manifold3d.OpType.Add).volume()
+        union = _manifold3d().Manifold.batch_boolean(parts, _manifold3d().OpType.Add).volume()
         if union < volumes.sum() * (1 - 1e-9):
             return None, [f"its {len(parts)} boundary components overlap (union {union:.6g} < sum "
                           f"{volumes.sum():.6g})"]
     return solid, []
 
 
-def _solid(x: np.ndarray, faces: np.ndarray) -> manifold3d.Manifold:
+def _solid(x: np.ndarray, faces: np.ndarray) -> "manifold3d.Manifold":
     """manifold3d solid bounded by `faces` (outward), on the nodes they use, in float64."""
     used, local = np.unique(faces, return_inverse=True)
-    mesh = manifold3d.Mesh64(
+    mesh = _manifold3d().Mesh64(
         vert_properties=np.ascontiguousarray(x[used]),
         tri_verts=np.ascontiguousarray(local.reshape(faces.shape).astype(np.uint64)),
     )
-    return manifold3d.Manifold(mesh)
+    return _manifold3d().Manifold(mesh)
 
 
-def exact_volumes(pred: manifold3d.Manifold, true: manifold3d.Manifold) -> tuple[float, float, float]:
+def exact_volumes(pred: "manifold3d.Manifold", true: "manifold3d.Manifold") -> tuple[float, float, float]:
     """(pred volume, true volume, intersection volume) of two solids from `exact_solid`, the
     intersection by a manifold3d Boolean."""
     return pred.volume(), true.volume(), (pred ^ true).volume()

@@ -222,10 +222,9 @@ def add_radius_edges(data: HeteroData, edge_type: tuple[str, str, str], radius: 
         if index.size(1) > 0:
             data[et].edge_index = index
             data[et].edge_attr = relative_features(data[et[0]].pos, data[et[2]].pos, index)
-    both = torch.cat(counts)
-    at = both.argmax()
+    most, at = torch.cat(counts).max(dim=0)  # no indexing by a device scalar: that would read it back
     side = (at >= counts[0].size(0)).long()
-    return torch.stack([both[at], side, at - side * counts[0].size(0)])
+    return torch.stack([most, side, at - side * counts[0].size(0)])
 
 
 def _check_shape(name: str, tensor: Tensor, shape: tuple) -> None:

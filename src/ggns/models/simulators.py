@@ -280,9 +280,9 @@ class GraphSimulator(pl.LightningModule):
         """Record in `loss_check` whether transition t's loss is non-finite, with its value, the trajectory
         of the batch and the mesh node (within it) of the first free node whose squared error is not finite."""
         bad = ~torch.isfinite(squared).all(dim=1)
-        first = free[bad.to(torch.uint8).argmax()]
-        trajectory = batch.mesh_batch[first]
-        node = first - (batch.mesh_batch < trajectory).sum()
+        first = free.index_select(0, bad.to(torch.uint8).argmax().view(1))  # [1]: no read of a device scalar
+        trajectory = batch.mesh_batch.index_select(0, first)[0]
+        node = first[0] - (batch.mesh_batch < trajectory).sum()
         self.loss_check.record(~torch.isfinite(loss.detach()), self.global_step, loss.detach(), trajectory, node,
                                torch.full((), t, device=loss.device))
 

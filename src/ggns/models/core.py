@@ -232,13 +232,14 @@ class GraphNetBlock(nn.Module):
         are applied once per node and gathered per edge, so the per-edge work is one [L, L] product
         instead of a [3L, L] product on a concatenation (same function and weights)."""
         first, latent = f[0], e.shape[1]
-        w = first.weight
+        w_src, w_dst, w_edge = first.weight.split(latent, dim=1)
         if x_src is x_dst:  # one product for both node blocks
-            projection = x_src @ torch.cat([w[:, :latent], w[:, latent:2 * latent]]).T
-            a, b = projection[:, :latent], projection[:, latent:]
+            a, b = (x_src @ torch.cat([w_src, w_dst]).T).split(latent, dim=1)
         else:
-            a, b = x_src @ w[:, :latent].T, x_dst @ w[:, latent:2 * latent].T
-        h = a.index_select(0, src) + b.index_select(0, dst) + nn.functional.linear(e, w[:, 2 * latent:], first.bias)
+            a, b = x_src @ w_src.T, x_dst @ w_dst.T
+        h = nn.functional.linear(e, w_edge, first.bias)  # added to in place: no [E, L] temporaries
+        h += a.index_select(0, src)
+        h += b.index_select(0, dst)
         return e + f[1:](h)
 
     def forward(self, x: Tensor, e: Tensor, graph: PackedGraph) -> tuple[Tensor, Tensor]:
@@ -249,9 +250,15 @@ class GraphNetBlock(nn.Module):
         nodes = graph.num_mesh if mesh_only else len(x)
         if self.edge_partition:
             return self._partitioned(x, e, graph, edges, nodes)
-        e = self._edge_update(self.edge_mlp, x, x, graph.src[:edges], graph.dst[:edges], e[:edges])
-        aggregate = mean_aggregate(e, graph.receiver[:edges], graph.inv_degree)
-        x = x[:nodes] + self.node_mlp(torch.cat([x[:nodes], aggregate[:nodes]], dim=1))
+        # slices only where they cut something: a slice's backward writes a zero-filled copy of the whole input
+        if edges < len(e):
+            e, src, dst, receiver = e[:edges], graph.src[:edges], graph.dst[:edges], graph.receiver[:edges]
+        else:
+            src, dst, receiver = graph.src, graph.dst, graph.receiver
+        e = self._edge_update(self.edge_mlp, x, x, src, dst, e)
+        aggregate = mean_aggregate(e, receiver, graph.inv_degree)
+        kept = x[:nodes] if nodes < len(x) else x
+        x = kept + self.node_mlp(torch.cat([kept, aggregate[:nodes]], dim=1))
         return x, e
 
     def _partitioned(self, x: Tensor, e: Tensor, graph: PackedGraph, edges: int, nodes: int) -> tuple[Tensor, Tensor]:

@@ -203,7 +203,7 @@ def test_a_training_step_synchronizes_only_in_its_radius_queries(splits):
 
 
 def test_the_step_profile_runs_on_the_gpu(cli_data, tmp_path):
-    from ggns.bench.profile import profile
+    from ggns.bench.step_profile import profile
 
     report = profile("ggns", str(cli_data / TINY12), latent=8, blocks=2, batch_size=2, steps=2, warmup=1,
                      device="cuda", fit_steps=3, output=str(tmp_path))

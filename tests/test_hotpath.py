@@ -10,7 +10,7 @@ import pytorch_lightning as pl
 import torch
 
 from ggns.batch import TrajectoryBatch
-from ggns.bench.profile import HostReads, profile
+from ggns.bench.step_profile import HostReads, profile
 from ggns.checks import DeferredCheck
 from ggns.data.module import SimulationDataModule, collate
 from ggns.evaluation.capture import StaticStep

@@ -557,7 +557,7 @@ def bench_profile(model: str = "ggns", dataset: str = "plate_small", latent: int
         compile: compile the message-passing blocks (torch.compile, dynamic shapes)
         static: roll out on static-shape graphs (CUDA-graph replays on a GPU)
     """
-    from .bench.profile import profile
+    from .bench.step_profile import profile
 
     return profile(model, dataset, latent=latent, blocks=blocks, batch_size=batch_size,
                    rollout_trajectories=rollout_trajectories, schedule=schedule, device=device, steps=steps,

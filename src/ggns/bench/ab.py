@@ -46,7 +46,7 @@ def run_probe(tree: Path, probe: str, threads: int | None, device: str = "cpu") 
            "GGNS_PROBE_DEVICE": device}
     if threads:
         env["OMP_NUM_THREADS"] = str(threads)
-    done = subprocess.run([sys.executable, str(PROBE), *probe.split()], cwd=ROOT, env=env, capture_output=True,
+    done = subprocess.run([sys.executable, "-P", str(PROBE), *probe.split()], cwd=ROOT, env=env, capture_output=True,
                           text=True)
     lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
     if done.returncode or not lines:

@@ -81,7 +81,7 @@ def _call_site() -> str | None:
     if stack and "torch/optim/" in stack[-1].filename:
         return None
     for frame in reversed(stack):
-        if frame.filename.startswith(SOURCE) and not frame.filename.endswith("profile.py"):
+        if frame.filename.startswith(SOURCE) and not frame.filename.endswith("step_profile.py"):
             return f"{Path(frame.filename).relative_to(SOURCE)}:{frame.lineno} {frame.name}"
     return "outside ggns"
 

@@ -129,6 +129,8 @@ def _measure(kind: str, run, steps: int, warmup: int, device: torch.device, per_
     count = steps * per_run
     row = {"step": kind, "ms per step": 1e3 * statistics.median(times)}
     row.update(_phase_table(prof, count, device))
+    # matrix time (profiled pass) over the step's time (timed pass, no profiler)
+    row["matrix share of step time"] = row.pop("matrix ms per step") / row["ms per step"]
     row["host reads per step"] = sum(reads.counts.values()) / count
     if device.type == "cuda":
         row["CUDA synchronizations per step"] = cuda_syncs / count
@@ -171,7 +173,8 @@ def _phase_table(prof, count: int, device: torch.device) -> dict:
     per_phase = collections.Counter(phase_of(e.time_range.start) for e in units)
     out = {f"{unit_name} per step": len(units) / count,
            "matrix share of operator time" if device.type == "cpu" else "matrix share of kernel time":
-               matrix / total if total else float("nan")}
+               matrix / total if total else float("nan"),
+           "matrix ms per step": matrix / 1e3 / count}
     for name in [*phases.PHASES, "other"]:
         if name in wall or per_phase.get(name):
             out[f"{name}: ms"] = wall.get(name, float("nan"))

@@ -218,10 +218,15 @@ def add_radius_edges(data: HeteroData, edge_type: tuple[str, str, str], radius: 
                                      batch_size=data.num_graphs)
         counts = [neighbour_counts(pairs[0], pos[dst].size(0)), neighbour_counts(pairs[1], pos[src].size(0))]
         edge_sets = {edge_type: pairs.flip(0), (dst, edge_type[1], src): pairs}
+    features = None
     for et, index in edge_sets.items():
         if index.size(1) > 0:
             data[et].edge_index = index
-            data[et].edge_attr = relative_features(data[et[0]].pos, data[et[2]].pos, index)
+            if features is None:
+                features = relative_features(data[et[0]].pos, data[et[2]].pos, index)
+            else:  # the flipped pairs: the opposite vector, the same norm
+                features = torch.cat([-features[:, :-1], features[:, -1:]], dim=1)
+            data[et].edge_attr = features
     most, at = torch.cat(counts).max(dim=0)  # no indexing by a device scalar: that would read it back
     side = (at >= counts[0].size(0)).long()
     return torch.stack([most, side, at - side * counts[0].size(0)])

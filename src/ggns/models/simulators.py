@@ -343,7 +343,7 @@ class GraphSimulator(pl.LightningModule):
         """Adam with the `lr_schedule` stepped after every optimizer step; its lr is logged as `train/lr`
         (by the LearningRateMonitor that `ggns.cli` adds to every CLI fit with a logger)."""
         h = self.hparams
-        optimizer = torch.optim.Adam(self.parameters(), lr=h.lr)
+        optimizer = torch.optim.Adam(self.parameters(), lr=h.lr, fused=True)  # one kernel for all parameters
         schedule = dict(lr=h.lr, lr_final=h.lr_final, decay_rate=h.lr_decay_rate, decay_steps=h.lr_decay_steps,
                         warmup_steps=h.lr_warmup_steps)
         scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: scheduled_lr(step, **schedule) / h.lr)

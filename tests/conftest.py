@@ -5,6 +5,8 @@ import os
 import shutil
 from pathlib import Path
 
+os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")  # as `python -m ggns` runs (ggns.__main__), before torch allocates
+
 import numpy as np
 import pytest
 import skfem

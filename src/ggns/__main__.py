@@ -25,8 +25,12 @@ from __future__ import annotations
 import os
 import sys
 
-from .command_line import build_parser, call
-from .commands import COMMANDS
+# Large CPU tensors in transparent huge pages (PyTorch's own switch, read at its first allocation, so set
+# before torch is imported): a paper-size training step then takes a tenth of the page faults (docs/speed.md)
+os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
+
+from .command_line import build_parser, call  # noqa: E402
+from .commands import COMMANDS  # noqa: E402
 
 LIGHTNING_COMMANDS = ("fit", "validate", "test", "predict")  # LightningCLI (ggns.cli); the rest: ggns.commands
 

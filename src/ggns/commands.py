@@ -588,7 +588,8 @@ def bench_precision(checkpoint: dict[str, str] | None = None, dataset: str = "pl
 
 def bench_ab(baseline: str, probe: Sequence[str] | None = None, rounds: int = 5, candidate: str | None = None,
              output_dir: str | None = None, threads: int | None = None,
-             device: Literal["cpu", "cuda"] = "cpu") -> list[dict]:
+             device: Literal["cpu", "cuda"] = "cpu", baseline_env: dict[str, str] | None = None,
+             candidate_env: dict[str, str] | None = None) -> list[dict]:
     """This checkout against a baseline commit, in one run on this machine (probes alternate between them).
 
     Args:
@@ -600,12 +601,16 @@ def bench_ab(baseline: str, probe: Sequence[str] | None = None, rounds: int = 5,
         output_dir: write ab_raw.csv and ab_summary.md here
         threads: OMP_NUM_THREADS of the probes (default: torch's own choice)
         device: where the probes run
+        baseline_env: environment variables of the baseline's probes, as NAME=VALUE
+        candidate_env: environment variables of the candidate's probes, as NAME=VALUE (the same tree on both
+            sides with another setting on one measures that setting)
     """
     from .bench.ab import DEFAULT_PROBES, ROOT
     from .bench.ab import bench_ab as run
 
     return run(baseline, tuple(probe) if probe else DEFAULT_PROBES, rounds=rounds,
-               candidate=candidate or str(ROOT), output=output_dir, threads=threads, device=device)
+               candidate=candidate or str(ROOT), output=output_dir, threads=threads, device=device,
+               baseline_env=dict(baseline_env or {}), candidate_env=dict(candidate_env or {}))
 
 
 COMMANDS = {

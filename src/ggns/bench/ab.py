@@ -39,11 +39,11 @@ def source_tree(spec: str, scratch: Path) -> Path:
     return target / "src"
 
 
-def run_probe(tree: Path, probe: str, threads: int | None, device: str = "cpu") -> dict:
-    """One probe in a subprocess importing ggns from `tree`; its JSON line (ValueError with its stderr
-    if it fails)."""
+def run_probe(tree: Path, probe: str, threads: int | None, device: str = "cpu", extra_env: dict | None = None) -> dict:
+    """One probe in a subprocess importing ggns from `tree`, with `extra_env` set; its JSON line (ValueError
+    with its stderr if it fails)."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), *filter(None, [os.environ.get("PYTHONPATH")])]),
-           "GGNS_PROBE_DEVICE": device}
+           "GGNS_PROBE_DEVICE": device, **(extra_env or {})}
     if threads:
         env["OMP_NUM_THREADS"] = str(threads)
     done = subprocess.run([sys.executable, "-P", str(PROBE), *probe.split()], cwd=ROOT, env=env, capture_output=True,
@@ -55,7 +55,8 @@ def run_probe(tree: Path, probe: str, threads: int | None, device: str = "cpu") 
 
 
 def bench_ab(baseline: str, probes: tuple[str, ...] = DEFAULT_PROBES, rounds: int = 5, candidate: str = str(ROOT),
-             output: str | None = None, threads: int | None = None, device: str = "cpu") -> list[dict]:
+             output: str | None = None, threads: int | None = None, device: str = "cpu",
+             baseline_env: dict | None = None, candidate_env: dict | None = None) -> list[dict]:
     if rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
     with tempfile.TemporaryDirectory() as scratch:
@@ -66,7 +67,8 @@ def bench_ab(baseline: str, probes: tuple[str, ...] = DEFAULT_PROBES, rounds: in
                 order = list(trees) if r % 2 == 0 else list(reversed(trees))
                 for probe in probes:
                     for name in order:
-                        result = run_probe(trees[name], probe, threads, device)
+                        env = baseline_env if name == "baseline" else candidate_env
+                        result = run_probe(trees[name], probe, threads, device, env)
                         value_key = "steps/s" if "steps/s" in result else "ms"
                         raw.append({"round": r, "probe": probe, "tree": name, "unit": value_key,
                                     "value": result[value_key]})
@@ -78,7 +80,8 @@ def bench_ab(baseline: str, probes: tuple[str, ...] = DEFAULT_PROBES, rounds: in
                     subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree.parent)],
                                    capture_output=True)
     rows = summarize(raw)
-    text = summary_markdown(rows, baseline, candidate, rounds, device)
+    label = (lambda tree, env: tree + (" with " + " ".join(f"{k}={v}" for k, v in env.items()) if env else ""))
+    text = summary_markdown(rows, label(baseline, baseline_env), label(candidate, candidate_env), rounds, device)
     print("\n" + text)
     if output is not None:
         out = Path(output)

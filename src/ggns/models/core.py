@@ -242,14 +242,15 @@ class GraphNetBlock(nn.Module):
         h += b.index_select(0, dst)
         return e + f[1:](h)
 
-    def forward(self, x: Tensor, e: Tensor, graph: PackedGraph) -> tuple[Tensor, Tensor]:
-        """Latents x [N_all, L] and e [E_all, L] of `graph` -> (x' [N', L], e' [E', L]): all rows, or for a
-        block that updates only mesh nodes the mesh prefix of both."""
+    def forward(self, x, e, graph: PackedGraph):
+        """Shared: latents x [N_all, L] and e [E_all, L] of `graph` -> (x' [N', L], e' [E', L]), all rows or,
+        for a block that updates only mesh nodes, the mesh prefix of both. Partitioned: lists of per-type
+        latents in, lists out (`_partitioned`)."""
         mesh_only = self.node_types == ["mesh"]
+        if self.edge_partition:
+            return self._partitioned(x, e, graph, mesh_only)
         edges = graph.into_mesh if mesh_only else len(e)
         nodes = graph.num_mesh if mesh_only else len(x)
-        if self.edge_partition:
-            return self._partitioned(x, e, graph, edges, nodes)
         # slices only where they cut something: a slice's backward writes a zero-filled copy of the whole input
         if edges < len(e):
             e, src, dst, receiver = e[:edges], graph.src[:edges], graph.dst[:edges], graph.receiver[:edges]
@@ -261,29 +262,28 @@ class GraphNetBlock(nn.Module):
         x = kept + self.node_mlp(torch.cat([kept, aggregate[:nodes]], dim=1))
         return x, e
 
-    def _partitioned(self, x: Tensor, e: Tensor, graph: PackedGraph, edges: int, nodes: int) -> tuple[Tensor, Tensor]:
-        """One f_E per edge type on its rows; every slot's mean with one scatter; one f_V per node type."""
-        updated = []
-        for i, t in enumerate(graph.edge_types):
-            rows = slice(graph.edge_offsets[i], graph.edge_offsets[i + 1])
-            if rows.start >= edges:
-                break
-            x_src = x[graph.node_rows(t[0])]
-            x_dst = x[graph.node_rows(t[2])] if t[0] != t[2] else x_src
-            index = graph.local_index[i]
-            updated.append(self._edge_update(self.edge_mlp[t], x_src, x_dst, index[0], index[1], e[rows]))
-        e = torch.cat(updated) if updated else e[:0]
-        slots = graph.slots
-        aggregate = mean_aggregate(e, graph.slot_receiver[:edges], graph.inv_slot_degree).view(-1, slots, x.shape[1])
+    def _partitioned(self, x: list[Tensor], e: list[Tensor], graph: PackedGraph,
+                     mesh_only: bool) -> tuple[list[Tensor], list[Tensor]]:
+        """One f_E per edge type, one f_V per node type, on per-type latents ([N_t, L] per node type and
+        [E_t, L] per edge type in packing order, as lists: no concatenation to cut apart again); every slot's
+        mean accumulated in one buffer. A block that updates only mesh nodes returns the mesh latents and the
+        edges into mesh."""
+        x_of = dict(zip(graph.node_types, x))
+        types = len(graph.edge_types) if not mesh_only else sum(t[2] == "mesh" for t in graph.edge_types)
+        updated = [self._edge_update(self.edge_mlp[t], x_of[t[0]], x_of[t[2]], index[0], index[1], e_t)
+                   for t, index, e_t in zip(graph.edge_types[:types], graph.local_index[:types], e[:types])]
+        slots, latent = graph.slots, x[0].shape[1]
+        total = x[0].new_zeros(len(graph.inv_slot_degree), latent)
+        for i, e_t in enumerate(updated):
+            total.index_add_(0, graph.slot_receiver[graph.edge_offsets[i]:graph.edge_offsets[i + 1]], e_t)
+        node_sizes = [b - a for a, b in zip(graph.node_offsets, graph.node_offsets[1:])]
+        means = (total * graph.inv_slot_degree).view(-1, slots, latent).split(node_sizes + [1])  # last: the sink
         out = []
-        for n in graph.node_types:
-            rows = graph.node_rows(n)
-            if rows.start >= nodes:
-                break
+        for n, mean in zip(graph.node_types[:1] if mesh_only else graph.node_types, means):
             width = len(self.slots[n])
-            inputs = torch.cat([x[rows], aggregate[rows, :width].reshape(-1, width * x.shape[1])], dim=1)
-            out.append(x[rows] + self.node_mlp[n](inputs))
-        return torch.cat(out) if len(out) > 1 else out[0], e
+            mean = mean if width == slots else mean[:, :width]
+            out.append(x_of[n] + self.node_mlp[n](torch.cat([x_of[n], mean.reshape(-1, width * latent)], dim=1)))
+        return out, updated
 
 
 class EncodeProcessDecode(nn.Module):
@@ -347,12 +347,15 @@ class EncodeProcessDecode(nn.Module):
             x_dict, e_dict = self.encode(data)
             like = x_dict["mesh"]
             graph = pack(data, self.slot_of if self.edge_partition else None, self.num_slots, like)
-            x = torch.cat([x_dict[t] for t in graph.node_types])
-            e = torch.cat([e_dict[t] for t in graph.edge_types]) if graph.edge_types else like[:0]
+            if self.edge_partition:  # per-type lists (each type has its own MLPs)
+                x, e = [x_dict[t] for t in graph.node_types], [e_dict[t] for t in graph.edge_types]
+            else:
+                x = torch.cat([x_dict[t] for t in graph.node_types])
+                e = torch.cat([e_dict[t] for t in graph.edge_types]) if graph.edge_types else like[:0]
         with phase("processor"):
             for block in self.processor:
                 x, e = block(x, e, graph)
-        return x[:graph.num_mesh]
+        return x[0] if self.edge_partition else x[:graph.num_mesh]
 
     def decode(self, latents: Tensor) -> Tensor:
         """Mesh latents [N_mesh, latent] -> [N_mesh, out_dim]."""

@@ -3,6 +3,7 @@ the step, node and quantity; no host reads in a training or rollout step but the
 static-shape graphs and the static step equal to the dynamic ones; the step profile on tiny data."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 
 import pytest
@@ -11,7 +12,7 @@ import torch
 
 from ggns.batch import TrajectoryBatch
 from ggns.bench.step_profile import HostReads, profile
-from ggns.checks import DeferredCheck
+from ggns.checks import DeferredCheck, gpu_code_paths
 from ggns.data.module import SimulationDataModule, collate
 from ggns.evaluation.capture import StaticStep
 from ggns.evaluation.rollout import RolloutError, rollout
@@ -24,17 +25,19 @@ from ggns import phases
 from conftest import TINY12, make
 
 
-def test_a_deferred_check_keeps_the_first_failure_until_read():
-    check = DeferredCheck()
-    assert check.failure() is None
-    for step, value in enumerate([1.0, float("nan"), 2.0, float("inf")]):
-        x = torch.tensor(value)
-        check.record(~torch.isfinite(x), step, x, torch.tensor([step, 7]))
-    failure = check.failure()
-    assert failure.step == 1 and failure.detail[1] == [1, 7] and failure.detail[0] != failure.detail[0]  # nan
-    check.reset()
-    check.record(torch.tensor(False), 5, torch.tensor(0.0))
-    assert check.failure() is None
+@pytest.mark.parametrize("gpu_paths", [False, True], ids=["cpu path", "gpu path"])
+def test_a_deferred_check_keeps_the_first_failure_until_read(gpu_paths):
+    with gpu_code_paths() if gpu_paths else contextlib.nullcontext():
+        check = DeferredCheck()
+        assert check.failure() is None
+        for step, value in enumerate([1.0, float("nan"), 2.0, float("inf")]):
+            x = torch.tensor(value)
+            check.record(~torch.isfinite(x), step, x, torch.tensor([step, 7]))
+        failure = check.failure()
+        assert failure.step == 1 and failure.detail[1] == [1, 7] and failure.detail[0] != failure.detail[0]  # nan
+        check.reset()
+        check.record(torch.tensor(False), 5, torch.tensor(0.0))
+        assert check.failure() is None
 
 
 def test_a_non_finite_loss_in_a_fit_raises_naming_step_node_and_quantity(cli_data, tmp_path):
@@ -99,7 +102,7 @@ def test_a_diverging_rollout_names_its_first_bad_step_whenever_it_is_read(val_ba
 
 def _reads(run) -> dict:
     reads = HostReads()
-    with phases.recording(), reads:
+    with phases.recording(), gpu_code_paths(), reads:
         run()
     return {name: n for (_, _, name), n in reads.counts.items()}
 

@@ -11,10 +11,31 @@ immediate check would have. On the CPU a read costs nothing, so callers may read
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+
+_gpu_paths = False  # `gpu_code_paths`
+
+
+def reads_cost(device: torch.device) -> bool:
+    """Whether a read of a value on `device` costs a synchronization: on a GPU yes, on the CPU no (the hot
+    path then takes cheaper CPU code), except inside `gpu_code_paths`."""
+    return device.type != "cpu" or _gpu_paths
+
+
+@contextlib.contextmanager
+def gpu_code_paths():
+    """Within the block the hot path takes its GPU code paths on the CPU too (the step profile's count of
+    host reads and tests/test_hotpath.py use it to see what a GPU would synchronize on)."""
+    global _gpu_paths
+    previous, _gpu_paths = _gpu_paths, True
+    try:
+        yield
+    finally:
+        _gpu_paths = previous
 
 
 @dataclass
@@ -43,6 +64,12 @@ class DeferredCheck:
         self.pending = False  # host flag: something was recorded since the last read
 
     def record(self, failed: Tensor, step: int, *detail: Tensor) -> None:
+        if not reads_cost(failed.device):  # a read costs nothing here: keep the first failure at once
+            if self._failed is None or (not bool(self._failed) and bool(failed)):
+                self._failed, self._step = failed.clone(), torch.tensor(step)
+                self._detail = tuple(d.clone() for d in detail)
+            self.pending = True
+            return
         step_tensor = torch.full((), step, dtype=torch.long, device=failed.device)  # a fill, not a copy from the host
         if self._failed is None:
             self._failed, self._step, self._detail = failed.clone(), step_tensor, tuple(d.clone() for d in detail)

@@ -11,8 +11,9 @@ For one model on one device, three passes over the same prepared inputs:
    GEMM rate (`bench.models.gemm_rate`);
 3. counted: the host reads per step (`HostReads`: every call that returns a device value to Python or
    whose output shape depends on data, each a synchronization on a GPU; reads of host tensors marked by
-   `phases.host_side` are not counted), by phase and call site; on a GPU also the synchronizations CUDA
-   itself reports (`torch.cuda.set_sync_debug_mode`).
+   `phases.host_side` are not counted), by phase and call site, with the hot path's GPU code paths taken
+   on the CPU too (`checks.gpu_code_paths`: on the CPU the checks read at once, where a read is free);
+   on a GPU also the synchronizations CUDA itself reports (`torch.cuda.set_sync_debug_mode`).
 Optionally (`fit_steps`) a Lightning fit of the same model, batch size and data, steps/s against the
 bare loop of pass 1 (`lightning efficiency`: the loop's time per step / the fit's).
 """
@@ -29,6 +30,7 @@ import torch
 from torch.overrides import TorchFunctionMode
 
 from .. import phases
+from ..checks import gpu_code_paths
 from ..batch import TrajectoryBatch
 from ..data.module import SimulationDataModule
 from ..evaluation.rollout import DEVICE_CHECK_EVERY, rollout
@@ -114,7 +116,7 @@ def _measure(kind: str, run, steps: int, warmup: int, device: torch.device, per_
             run(i)
         sync(device)
     reads, cuda_syncs = HostReads(), 0
-    with phases.recording(), reads, warnings.catch_warnings(record=True) as caught:
+    with phases.recording(), gpu_code_paths(), reads, warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         if device.type == "cuda":
             torch.cuda.set_sync_debug_mode("warn")

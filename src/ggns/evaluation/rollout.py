@@ -25,7 +25,7 @@ from torch_geometric.data import HeteroData
 from .metrics import m_plus_10_starts
 from .schedules import EveryK, Never, Schedule
 from ..batch import TrajectoryBatch
-from ..checks import DeferredCheck
+from ..checks import DeferredCheck, reads_cost
 from ..graphs.build import NeighbourCheck
 from ..graphs.connectivity import Connectivity
 from ..graphs.state import state_graph
@@ -77,6 +77,8 @@ class DivergenceCheck:
             if self.escape:
                 failed = failed | ((new - self.origin).norm(dim=1) > ESCAPE_FACTOR * self.extent).any()
             self.diverged.record(failed, t)
+            if not reads_cost(new.device) and not bool(failed):  # the CPU: nothing to hold back
+                return new
             return torch.where(finite[:, None], new, previous)
 
     def raise_if_failed(self, predictions: dict[int, Tensor]) -> None:

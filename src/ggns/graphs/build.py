@@ -29,7 +29,7 @@ from torch import Tensor
 from torch_geometric.data import HeteroData
 
 from ..batch import check_batch_vectors
-from ..checks import DeferredCheck
+from ..checks import DeferredCheck, reads_cost
 from ..phases import phase
 from .connectivity import Connectivity
 from .types import MESH_EDGE, WORLD_EDGE
@@ -186,8 +186,10 @@ def drop_self_loops(index: Tensor, loops: int) -> Tensor:
 
 
 def neighbour_counts(index: Tensor, size: int) -> Tensor:
-    """How often each of `size` nodes occurs in `index` [E] (long [size]; a scatter, so no sync where
-    `torch.bincount` would read the largest index back to size its output)."""
+    """How often each of `size` nodes occurs in `index` [E] (long [size]): on a GPU a scatter, so no sync
+    where `torch.bincount` would read the largest index back to size its output; on the CPU bincount."""
+    if not reads_cost(index.device):
+        return torch.bincount(index, minlength=size)
     return torch.zeros(size, dtype=torch.long, device=index.device).index_add_(0, index, torch.ones_like(index))
 
 

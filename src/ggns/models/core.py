@@ -25,8 +25,7 @@ all node types as one array [N_all, L] (types in `NODE_TYPES` order, so mesh row
 edge types as one array [E_all, L] (edge types into mesh first, in `EDGE_TYPES` order), with global
 sender and receiver indices. A shared block is then one node projection, two gathers, one edge product,
 one scatter-mean and one node product for all types at once, whatever the number of types; a
-partitioned block runs its per-type products on slices of the same arrays and aggregates every slot
-with one scatter. The last block updates only what reaches the decoder: the edges into mesh (a prefix
+partitioned block (one MLP per type) keeps per-type latents and takes one mean per incoming edge type. The last block updates only what reaches the decoder: the edges into mesh (a prefix
 of the edge array) and the mesh nodes (a prefix of the node array).
 
 Masked edges: an edge store may carry `edge_mask` [E] bool (the fixed-capacity graphs of
@@ -90,8 +89,9 @@ class PackedGraph:
     indices of each edge's sender and receiver; receiver [E_all]: dst, or `num_nodes` (the sink row)
     for a masked edge; local_index: each edge type's own edge_index [2, E_t] (indices within its types). into_mesh: edges [0, into_mesh) end at mesh nodes, and num_mesh nodes are mesh.
     inv_degree [num_nodes + 1, 1]: 1 / max(1, unmasked incoming edges) (the pooled mean);
-    slot_receiver [E_all]: receiver * slots + slot of the edge's type at its receiver's node type, and
-    inv_slot_degree [(num_nodes + 1) * slots, 1] likewise per slot (the partitioned processor's means).
+    local_receiver / inv_local_degree (the partitioned processor's per-type means): per edge type its
+    receivers within their node type, n_dst (a sink row) for a masked edge, and [n_dst + 1, 1] 1 / max(1,
+    unmasked incoming edges of that type).
     """
 
     node_types: list[str]
@@ -105,9 +105,8 @@ class PackedGraph:
     into_mesh: int
     num_mesh: int
     inv_degree: Tensor
-    slots: int
-    slot_receiver: Tensor | None
-    inv_slot_degree: Tensor | None
+    local_receiver: list[Tensor]
+    inv_local_degree: list[Tensor]
 
     @property
     def num_nodes(self) -> int:
@@ -134,10 +133,9 @@ def inverse_counts(receivers: Tensor, size: int, like: Tensor) -> Tensor:
     return count.clamp(min=1).reciprocal()
 
 
-def pack(data: HeteroData, slot_of: Mapping[EdgeType, int] | None, slots: int, like: Tensor) -> PackedGraph:
-    """The packed layout of `data` (module docstring). slot_of: slot of each edge type at its receiver's
-    node type, for the partitioned processor (None: the pooled mean only). like: a float tensor giving
-    the degrees' dtype and device."""
+def pack(data: HeteroData, like: Tensor, per_type_means: bool = False) -> PackedGraph:
+    """The packed layout of `data` (module docstring). like: a float tensor giving the degrees' dtype and
+    device; per_type_means: also the per-type receivers and degrees of the partitioned processor."""
     node_types = [t for t in NODE_TYPES if t in data.node_types]
     if node_types[:1] != ["mesh"]:
         raise ValueError(f"a graph needs mesh nodes, got node types {data.node_types}")
@@ -146,27 +144,28 @@ def pack(data: HeteroData, slot_of: Mapping[EdgeType, int] | None, slots: int, l
         node_offsets.append(node_offsets[-1] + data[t].num_nodes)
     start = dict(zip(node_types, node_offsets))
     edge_types = edge_packing_order(data.edge_types)
-    edge_offsets, src, dst, receiver, slot_receiver = [0], [], [], [], []
+    edge_offsets, src, dst, receiver, local_receiver, inv_local = [0], [], [], [], [], []
     sink = node_offsets[-1]
     for t in edge_types:
         index, store = data[t].edge_index, data[t]
+        mask = store.edge_mask if "edge_mask" in store else None
         s, d = index[0] + start[t[0]], index[1] + start[t[2]]
-        r = d if "edge_mask" not in store else torch.where(store.edge_mask, d, sink)
         src.append(s)
         dst.append(d)
-        receiver.append(r)
-        if slot_of is not None:
-            slot_receiver.append(r * slots + slot_of[t])
+        receiver.append(d if mask is None else torch.where(mask, d, sink))
+        if per_type_means:
+            size = data[t[2]].num_nodes
+            local = index[1] if mask is None else torch.where(mask, index[1], size)
+            local_receiver.append(local)
+            inv_local.append(inverse_counts(local, size + 1, like))
         edge_offsets.append(edge_offsets[-1] + index.size(1))
     empty = like.new_zeros(0, dtype=torch.long)
     cat = (lambda parts: torch.cat(parts) if parts else empty)
     receiver_all = cat(receiver)
     into_mesh = edge_offsets[sum(t[2] == "mesh" for t in edge_types)]
-    slot_all = cat(slot_receiver) if slot_of is not None else None
     return PackedGraph(node_types, node_offsets, edge_types, edge_offsets, cat(src), cat(dst), receiver_all,
-                       [data[t].edge_index for t in edge_types],
-                       into_mesh, node_offsets[1], inverse_counts(receiver_all, sink + 1, like), slots, slot_all,
-                       inverse_counts(slot_all, (sink + 1) * slots, like) if slot_all is not None else None)
+                       [data[t].edge_index for t in edge_types], into_mesh, node_offsets[1],
+                       inverse_counts(receiver_all, sink + 1, like), local_receiver, inv_local)
 
 
 def mean_aggregate(messages: Tensor, receivers: Tensor, inv_count: Tensor) -> Tensor:
@@ -265,24 +264,21 @@ class GraphNetBlock(nn.Module):
     def _partitioned(self, x: list[Tensor], e: list[Tensor], graph: PackedGraph,
                      mesh_only: bool) -> tuple[list[Tensor], list[Tensor]]:
         """One f_E per edge type, one f_V per node type, on per-type latents ([N_t, L] per node type and
-        [E_t, L] per edge type in packing order, as lists: no concatenation to cut apart again); every slot's
-        mean accumulated in one buffer. A block that updates only mesh nodes returns the mesh latents and the
-        edges into mesh."""
+        [E_t, L] per edge type in packing order, as lists: no concatenation to cut apart again), with one
+        mean per incoming edge type (a zero slot for a type the graph lacks). A block that updates only mesh
+        nodes returns the mesh latents and the edges into mesh."""
         x_of = dict(zip(graph.node_types, x))
         types = len(graph.edge_types) if not mesh_only else sum(t[2] == "mesh" for t in graph.edge_types)
-        updated = [self._edge_update(self.edge_mlp[t], x_of[t[0]], x_of[t[2]], index[0], index[1], e_t)
-                   for t, index, e_t in zip(graph.edge_types[:types], graph.local_index[:types], e[:types])]
-        slots, latent = graph.slots, x[0].shape[1]
-        total = x[0].new_zeros(len(graph.inv_slot_degree), latent)
-        for i, e_t in enumerate(updated):
-            total.index_add_(0, graph.slot_receiver[graph.edge_offsets[i]:graph.edge_offsets[i + 1]], e_t)
-        node_sizes = [b - a for a, b in zip(graph.node_offsets, graph.node_offsets[1:])]
-        means = (total * graph.inv_slot_degree).view(-1, slots, latent).split(node_sizes + [1])  # last: the sink
+        means, updated = {}, []
+        for i, (t, index, e_t) in enumerate(zip(graph.edge_types[:types], graph.local_index, e)):
+            e_t = self._edge_update(self.edge_mlp[t], x_of[t[0]], x_of[t[2]], index[0], index[1], e_t)
+            updated.append(e_t)
+            means[t] = mean_aggregate(e_t, graph.local_receiver[i], graph.inv_local_degree[i])
         out = []
-        for n, mean in zip(graph.node_types[:1] if mesh_only else graph.node_types, means):
-            width = len(self.slots[n])
-            mean = mean if width == slots else mean[:, :width]
-            out.append(x_of[n] + self.node_mlp[n](torch.cat([x_of[n], mean.reshape(-1, width * latent)], dim=1)))
+        for n in graph.node_types[:1] if mesh_only else graph.node_types:
+            x_n = x_of[n]
+            slots = [means[t][:len(x_n)] if t in means else x_n.new_zeros(x_n.shape) for t in self.slots[n]]
+            out.append(x_n + self.node_mlp[n](torch.cat([x_n, *slots], dim=1)))
         return out, updated
 
 
@@ -316,10 +312,6 @@ class EncodeProcessDecode(nn.Module):
         else:
             self.node_encoder = TypeModuleDict({t: linear_encoder(node_dims[t], latent) for t in node_types})
             self.edge_encoder = TypeModuleDict({t: linear_encoder(edge_dims[t], latent) for t in edge_types})
-        # the partitioned processor's slot of each edge type among the types into its receiver's node type
-        incoming = {n: [t for t in edge_types if t[2] == n] for n in node_types}
-        self.slot_of = {t: incoming[t[2]].index(t) for t in edge_types}
-        self.num_slots = max((len(v) for v in incoming.values()), default=0) or 1
         # The last block updates only what reaches the decoder: mesh nodes and edges into mesh.
         last = (["mesh"], [t for t in edge_types if t[2] == "mesh"])
         self.processor = nn.ModuleList(
@@ -346,7 +338,7 @@ class EncodeProcessDecode(nn.Module):
         with phase("encoder"):
             x_dict, e_dict = self.encode(data)
             like = x_dict["mesh"]
-            graph = pack(data, self.slot_of if self.edge_partition else None, self.num_slots, like)
+            graph = pack(data, like, per_type_means=self.edge_partition)
             if self.edge_partition:  # per-type lists (each type has its own MLPs)
                 x, e = [x_dict[t] for t in graph.node_types], [e_dict[t] for t in graph.edge_types]
             else:

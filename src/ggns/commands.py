@@ -517,18 +517,19 @@ def demo(task: Literal["plate", "tissue"] = "plate", output: str = "lightning_lo
 
 
 def paper(task: Literal["plate", "tissue", "cavity"] = "plate", summary: dict[str, str] | None = None,
-          output: str | None = None) -> str:
+          output: str | None = None, compact: bool = False) -> str:
     """Our sweep results in the paper's layout, the paper's figures (conf/paper/ggns_iclr2023.yaml) beside them.
 
     Args:
         task: the paper's task the sweeps ran
         summary: a sweep's summary.csv, as label=path (repeatable; rows labelled when several); label=a.csv,b.csv pools runs of one sweep on disjoint seeds
         output: also write the markdown to this file
+        compact: the paper's four models and four columns only (the README's tables)
     """
     from .experiments.paper import paper_table
     from .reports import write_text
 
-    text = paper_table(task, dict(summary or {}))
+    text = paper_table(task, dict(summary or {}), compact=compact)
     print(text)
     if output:
         write_text(output, text + "\n")
@@ -594,8 +595,9 @@ def bench_ab(baseline: str, probe: Sequence[str] | None = None, rounds: int = 5,
 
     Args:
         baseline: a commit of this repository (checked out into a temporary worktree) or a checkout's path
-        probe: probes as "train MODEL LATENT BLOCKS BATCH", "rollout MODEL LATENT BLOCKS TRAJECTORIES SCHEDULE"
-            or "fit MODEL LATENT BLOCKS BATCH" (default: the demo's and the paper-size models')
+        probe: probes as "train MODEL LATENT BLOCKS BATCH", "rollout MODEL LATENT BLOCKS TRAJECTORIES SCHEDULE
+            [static]", "fit MODEL LATENT BLOCKS BATCH" or "ops train|rollout MODEL LATENT BLOCKS SIZE" (operators
+            per step; default: the demo's and the paper-size models' times)
         rounds: rounds of every probe on both trees (medians over rounds are reported)
         candidate: the tree measured against the baseline (default: this checkout)
         output_dir: write ab_raw.csv and ab_summary.md here

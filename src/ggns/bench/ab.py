@@ -69,7 +69,7 @@ def bench_ab(baseline: str, probes: tuple[str, ...] = DEFAULT_PROBES, rounds: in
                     for name in order:
                         env = baseline_env if name == "baseline" else candidate_env
                         result = run_probe(trees[name], probe, threads, device, env)
-                        value_key = "steps/s" if "steps/s" in result else "ms"
+                        value_key = next(k for k in ("steps/s", "ms", "ops") if k in result)
                         raw.append({"round": r, "probe": probe, "tree": name, "unit": value_key,
                                     "value": result[value_key]})
                         print(f"bench ab: round {r + 1}/{rounds} {name:9s} {probe}: {result[value_key]:.2f} {value_key}",
@@ -93,15 +93,15 @@ def bench_ab(baseline: str, probes: tuple[str, ...] = DEFAULT_PROBES, rounds: in
 
 def summarize(raw: list[dict]) -> list[dict]:
     """Per probe: each tree's median and the median per-round speed-up of the candidate (baseline ms /
-    candidate ms, or candidate steps/s / baseline steps/s)."""
+    candidate ms, or candidate steps/s / baseline steps/s; for operator counts the reduction)."""
     rows = []
     for probe in dict.fromkeys(r["probe"] for r in raw):
         mine = [r for r in raw if r["probe"] == probe]
         unit = mine[0]["unit"]
         value = {(r["round"], r["tree"]): r["value"] for r in mine}
         rounds = sorted({r["round"] for r in mine})
-        speedups = [(value[k, "baseline"] / value[k, "candidate"]) if unit == "ms" else
-                    (value[k, "candidate"] / value[k, "baseline"]) for k in rounds]
+        speedups = [(value[k, "candidate"] / value[k, "baseline"]) if unit == "steps/s" else
+                    (value[k, "baseline"] / value[k, "candidate"]) for k in rounds]
         rows.append({"probe": probe, "unit": unit,
                      "baseline": statistics.median(value[k, "baseline"] for k in rounds),
                      "candidate": statistics.median(value[k, "candidate"] for k in rounds),

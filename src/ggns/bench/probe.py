@@ -6,6 +6,7 @@ models, `window_loss`, the rollout engine, a Lightning fit). Prints one JSON lin
     python probe.py train  MODEL LATENT BLOCKS BATCH [ITERATIONS]     ms per optimizer iteration
     python probe.py rollout MODEL LATENT BLOCKS TRAJECTORIES SCHEDULE [static]   ms per rollout step
     python probe.py fit    MODEL LATENT BLOCKS BATCH [STEPS]          Lightning fit steps/s
+    python probe.py ops    train|rollout MODEL LATENT BLOCKS SIZE [SCHEDULE]  operators per step (torch.profiler)
 
 `static`: roll out with the model's static step where its tree has one (`GraphSimulator.rollout_step`),
 else its plain step. The device is GGNS_PROBE_DEVICE (default cpu). Data: plate_small (generated
@@ -118,10 +119,49 @@ def fit(model_name: str, latent: int, blocks: int, batch_size: int, steps: int =
     return {"steps/s": (clock.steps - 20) / (clock.end - clock.start), "steps": clock.steps - 20}
 
 
+def ops(step: str, model_name: str, latent: int, blocks: int, size: int, schedule: str = "every:1") -> dict:
+    """Operators (leaf aten ops, what a GPU launches as kernels) per training iteration (batch `size`) or per
+    rollout step (`size` trajectories), counted by torch's profiler over 3 iterations or 10 steps."""
+    torch, data, model = _setup(model_name, latent, blocks, size if step == "train" else 8)
+    from torch.profiler import profile
+
+    batches = _batches(data, 8)
+    model.fit_normalizers(batches[:3])
+    if step == "train":
+        optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
+
+        def run():
+            for batch in batches[3:6]:
+                loss = model.window_loss(batch, train=True)
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+        count = 3
+    else:
+        from ggns.batch import TrajectoryBatch
+        from ggns.evaluation.rollout import rollout as roll
+        from ggns.evaluation.schedules import parse_schedule
+
+        model.eval()
+        tests = data.trajectories("test")
+        batch = TrajectoryBatch.from_trajectories([tests[i % len(tests)] for i in range(size)], device=DEVICE)
+
+        def run():
+            with torch.no_grad():
+                roll(model.step, batch, parse_schedule(schedule), model.connectivity, model.with_material, steps=10)
+        count = 10
+    run()
+    with profile() as prof:
+        run()
+    leaves = [e for e in prof.events() if e.name.startswith("aten::")
+              and not any(c.name.startswith("aten::") for c in e.cpu_children)]
+    return {"ops": len(leaves) / count}
+
+
 def main(argv: list[str]) -> None:
-    kind, model_name, *rest = argv
+    kind, *rest = argv
     numbers = [int(v) if v.isdigit() else v for v in rest]
-    result = {"train": train, "rollout": rollout, "fit": fit}[kind](model_name, *numbers)
+    result = {"train": train, "rollout": rollout, "fit": fit, "ops": ops}[kind](*numbers)
     print(json.dumps({"probe": " ".join(argv), **result}))
 
 

@@ -138,14 +138,23 @@ def _ratios(tables: dict[str, dict], paper: dict) -> tuple[list[str], list[list[
     return header, rows
 
 
-def paper_table(task: str, summaries: dict[str, str | Path]) -> str:
+COMPACT_COLUMNS = ("rollout_mse_k1", "rollout_mse_k5", "rollout_mse_never", "m10_pooled_mse")
+NOT_COMPACT = ("static", "alpha_shapes", "mgn_shared", "ggns_m")  # baselines and ablations the paper has not
+
+
+def paper_table(task: str, summaries: dict[str, str | Path], compact: bool = False) -> str:
     """Markdown: our models (each summary's, labelled when there are several) and the paper's, in the
-    paper's layout (module docstring), then the ratios of its claims."""
+    paper's layout (module docstring), then the ratios of its claims. compact: the paper's models and ours
+    (no baselines or ablations, NOT_COMPACT) and the columns COMPACT_COLUMNS (full rollouts with a point cloud every step and every 5th, without,
+    and the m+10 error), no ratios: the README's tables."""
     if not summaries:
         raise ValueError("give at least one sweep summary (--summary LABEL=PATH)")
     paper = paper_figures(task)
     tables = {label: read_summary(path) for label, path in summaries.items()}
-    columns = [c for c in COLUMNS if any(c in m for t in tables.values() for m in t.values()) or c in paper]
+    if compact:
+        tables = {label: {m: v for m, v in table.items() if m not in NOT_COMPACT} for label, table in tables.items()}
+    columns = [c for c in COLUMNS if (any(c in m for t in tables.values() for m in t.values()) or c in paper)
+               and (not compact or c in COMPACT_COLUMNS)]
     rows, shown = [], set()
     for label, table in tables.items():
         for model, metrics in table.items():
@@ -161,8 +170,11 @@ def paper_table(task: str, summaries: dict[str, str | Path]) -> str:
             rows.append([f"paper: {LABELS[model]}",
                          *(format(paper[c][model], _fmt(c)) if model in paper.get(c, {}) else "-" for c in columns)])
     header = ["model", *(COLUMNS[c] for c in columns)]
-    ratio_header, ratio_rows = _ratios(tables, paper)
     sources = ", ".join(f"{label}: `{path}`" for label, path in summaries.items())
+    if compact:
+        return "\n".join([markdown_table(header, rows), "",
+                          f"Ours: seed mean ± std ({sources}); paper: conf/paper/ggns_iclr2023.yaml.", ""])
+    ratio_header, ratio_rows = _ratios(tables, paper)
     lines = [f"### {task}: ours and the paper's", "",
              f"Ours: seed mean ± std of the test metrics ({sources}); paper: conf/paper/ggns_iclr2023.yaml "
              "(the mean of each bar or table entry; '-': not reported). MSE in squared task-space units.", "",

@@ -166,7 +166,7 @@ def tiny_registry(cli_data, tmp_path_factory):
             "--trainer.check_val_every_n_epoch", "1",
             "--trainer.enable_progress_bar", "false", "--model.init_args.latent", "8",
             "--model.init_args.blocks", "1", "--data.max_eval_trajectories", "2"]
-    models = {name: {"config": str(CONF_DIR.parent / config), "args": args} for name, (config, _) in TINY_MODELS.items()}
+    models = {name: {"config": str(Path(__file__).resolve().parents[1] / config), "args": args} for name, (config, _) in TINY_MODELS.items()}
     import json
     sweep.write_text(json.dumps({"output": str(root / "runs"), "seeds": [0], "models": models}))
     spec = {"output": str(root / "runs"), "test_trajectories": 2,

@@ -213,3 +213,22 @@ def test_the_compiled_processor_equals_the_eager_one(trajs, val_batch):
     with torch.no_grad():
         torch.testing.assert_close(compiled.rollout(val_batch, "every:2"), eager.rollout(val_batch, "every:2"))
     assert set(compiled.state_dict()) == set(eager.state_dict())  # checkpoints keep their names
+
+
+def test_an_interrupted_ab_run_is_summarized_from_its_complete_rounds():
+    from ggns.bench.ab import raw_from_log, summarize
+
+    log = "\n".join([
+        "bench ab: round 1/3 baseline  train ggns 64 3 8: 100.00 ms",
+        "bench ab: round 1/3 candidate train ggns 64 3 8: 50.00 ms",
+        "bench ab: round 2/3 candidate train ggns 64 3 8: 40.00 ms",
+        "bench ab: round 2/3 baseline  train ggns 64 3 8: 120.00 ms",
+        "bench ab: round 3/3 baseline  train ggns 64 3 8: 90.00 ms",  # the run was killed here
+    ])
+    raw = raw_from_log(log)
+    assert sorted({r["round"] for r in raw}) == [0, 1]
+    (row,) = summarize(raw)
+    assert row["baseline"] == 110.0 and row["candidate"] == 45.0
+    assert row["speed-up (median of rounds)"] == pytest.approx((2.0 + 3.0) / 2)
+    with pytest.raises(ValueError, match="no complete round"):
+        raw_from_log(log.splitlines()[-1])

@@ -3,6 +3,7 @@ order in one namespace (what a kernel does), with parameters given by environmen
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from ggns.data.predictions import read_predictions
 from ggns.data.schema import SplitReader
 from ggns.models.simulators import GGNS, MGN
 
-NOTEBOOKS = CONF_DIR.parent / "notebooks"
+NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
 
 
 def run_notebook(name: str) -> dict:

@@ -42,8 +42,7 @@ LIGHTNING_COMMANDS = ("fit", "validate", "test", "predict")  # LightningCLI (ggn
 # numerical reports (they name the step and where); RunFailed, a sweep's or `bench learning`'s
 # subprocess that failed, carries that subprocess's own error line.
 def _user_errors() -> tuple[type[BaseException], ...]:
-    from .evaluation.rollout import RolloutError
-    from .sim.solver import SimulationError
+    from .errors import RolloutError, SimulationError
 
     errors = (FileNotFoundError, FileExistsError, IsADirectoryError, PermissionError, ValueError, SimulationError,
               RolloutError)

@@ -27,7 +27,7 @@ from pytorch_lightning.trainer.states import TrainerFn
 from pytorch_lightning.utilities.exceptions import SIGTERMException
 
 from .checkpoints import check_format, read_checkpoint
-from .config import load_config
+from .config import config_file, load_config
 from .data.module import SimulationDataModule
 from .models.simulators import GraphSimulator
 from .pretrained import PREFIX, check_data, checkpoint_path, shipped_name
@@ -84,8 +84,9 @@ class SimulatorCLI(LightningCLI):
         return trainer
 
     def parse_arguments(self, parser, args) -> None:
-        self._given_args = [str(a) for a in (sys.argv[1:] if args is None else args)] \
-            if not isinstance(args, dict) else []
+        if not isinstance(args, dict):
+            args = shipped_configs([str(a) for a in (sys.argv[1:] if args is None else args)])
+        self._given_args = args if not isinstance(args, dict) else []
         super().parse_arguments(parser, args)
 
     def _parse_ckpt_path(self) -> None:
@@ -139,6 +140,19 @@ def _differ(given, stored) -> bool:
     """Whether two argument values differ (lists and tuples compared by their items)."""
     normalize = (lambda v: list(v) if isinstance(v, (list, tuple)) else v)
     return normalize(given) != normalize(stored)
+
+
+def shipped_configs(args: list[str]) -> list[str]:
+    """`--config` values that name a shipped config (`plate/ggns`, or `conf/plate/ggns.yaml` from a folder
+    without that file) replaced by the package's file (ggns.config.config_file), so that the presets work
+    from any folder once ggns is installed."""
+    out = list(args)
+    for i, arg in enumerate(out):
+        if arg == "--config" and i + 1 < len(out):
+            out[i + 1] = str(config_file(out[i + 1]))
+        elif arg.startswith("--config="):
+            out[i] = "--config=" + str(config_file(arg.split("=", 1)[1]))
+    return out
 
 
 def build_cli(args: list[str] | None = None, run: bool = True) -> LightningCLI:

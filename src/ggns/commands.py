@@ -39,8 +39,6 @@ def generate(*overrides: str, config: str = "plate", split: Sequence[Split] | No
         merge_shards: n, write the split files from their n shard files (simulates nothing)
     """
     from .config import load_config
-    from .data.generate import generate as generate_splits, merge_shards as merge_split_shards, parse_shard
-
 
     overrides = list(overrides)
     for key, value in (("seed", seed), ("output", output), ("workers", workers)):
@@ -53,10 +51,13 @@ def generate(*overrides: str, config: str = "plate", split: Sequence[Split] | No
     if shard is not None and merge_shards is not None:
         raise ValueError("--shard makes one shard, --merge-shards merges them all: give one of them")
     chosen = list(split) if split else None
+    settings = load_config(config, overrides)  # a typo is refused here, before torch is imported
+    from .data.generate import generate as generate_splits, merge_shards as merge_split_shards, parse_shard
+
     if merge_shards is not None:
-        paths = merge_split_shards(load_config(config, overrides), merge_shards, chosen, overwrite=overwrite)
+        paths = merge_split_shards(settings, merge_shards, chosen, overwrite=overwrite)
     else:
-        paths = generate_splits(load_config(config, overrides), chosen, overwrite=overwrite,
+        paths = generate_splits(settings, chosen, overwrite=overwrite,
                                 shard=parse_shard(shard) if shard is not None else None)
     for path in paths:
         print(path)
@@ -590,7 +591,7 @@ def bench_precision(checkpoint: dict[str, str] | None = None, dataset: str = "pl
 def bench_ab(baseline: str, probe: Sequence[str] | None = None, rounds: int = 5, candidate: str | None = None,
              output_dir: str | None = None, threads: int | None = None,
              device: Literal["cpu", "cuda"] = "cpu", baseline_env: dict[str, str] | None = None,
-             candidate_env: dict[str, str] | None = None) -> list[dict]:
+             candidate_env: dict[str, str] | None = None, from_log: str | None = None) -> list[dict]:
     """This checkout against a baseline commit, in one run on this machine (probes alternate between them).
 
     Args:
@@ -606,9 +607,16 @@ def bench_ab(baseline: str, probe: Sequence[str] | None = None, rounds: int = 5,
         baseline_env: environment variables of the baseline's probes, as NAME=VALUE
         candidate_env: environment variables of the candidate's probes, as NAME=VALUE (the same tree on both
             sides with another setting on one measures that setting)
+        from_log: summarize the printed log of an earlier run instead of running (its complete rounds:
+            what an interrupted run leaves); baseline, candidate and the environments label the summary
     """
-    from .bench.ab import DEFAULT_PROBES, ROOT
+    from .bench.ab import DEFAULT_PROBES, ROOT, raw_from_log, report
     from .bench.ab import bench_ab as run
+
+    if from_log is not None:
+        raw = raw_from_log(Path(from_log).read_text(encoding="utf-8"))
+        return report(raw, baseline, candidate or str(ROOT), output_dir, device, dict(baseline_env or {}),
+                      dict(candidate_env or {}), note=f"Summarized from the run's log ({from_log}), complete rounds only.")
 
     return run(baseline, tuple(probe) if probe else DEFAULT_PROBES, rounds=rounds,
                candidate=candidate or str(ROOT), output=output_dir, threads=threads, device=device,

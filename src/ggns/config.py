@@ -12,7 +12,21 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+CONF_DIR = Path(__file__).resolve().parent / "conf"  # shipped inside the package; conf/ at the checkout's top links here
+
+
+def config_file(spec: str | Path) -> Path:
+    """A Lightning config named by a path that exists, by its path in a checkout (`conf/plate/ggns.yaml`,
+    which works from any folder: `conf/` is the package's own), or by its name under the package's conf
+    (`plate/ggns`, `plate/ggns.yaml`). Anything else is returned unchanged, for the caller to refuse."""
+    path = Path(spec)
+    if path.is_file():
+        return path
+    parts = path.parts[1:] if path.parts[:1] == ("conf",) else path.parts
+    for candidate in (CONF_DIR.joinpath(*parts), CONF_DIR.joinpath(*parts).with_suffix(".yaml")):
+        if parts and candidate.is_file():
+            return candidate
+    return path
 
 
 def resolve_preset(name: str | Path, kind: str = "data") -> Path:

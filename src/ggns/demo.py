@@ -26,7 +26,7 @@ from tqdm import tqdm  # noqa: E402
 
 from .batch import TrajectoryBatch  # noqa: E402
 from .cli import build_cli  # noqa: E402
-from .config import CONF_DIR  # noqa: E402
+from .config import CONF_DIR, config_file  # noqa: E402
 from .data.module import SimulationDataModule  # noqa: E402
 from .evaluation.evaluate import MetricTable  # noqa: E402
 from .evaluation.pictures import error_curves, rollout_animation, rollout_picture, rollout_series  # noqa: E402
@@ -130,7 +130,7 @@ def train_from_scratch(spec: dict, output: Path, minutes: float) -> dict:
     progress bar on); returns its log directory, steps, seconds and validation curve."""
     train = spec["train"]
     seconds = int(round(minutes * 60))
-    args = ["--config", str(CONF_DIR.parent / train["config"]), "--data.dataset", spec["data"],
+    args = ["--config", str(config_file(train["config"])), "--data.dataset", spec["data"],
             "--data.max_eval_trajectories", str(train["val_trajectories"]),
             "--data.eval_batch_size", str(train["val_trajectories"]), *train["args"],
             "--trainer.max_time", f"00:{seconds // 3600:02d}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}",

@@ -8,16 +8,16 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import statistics
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from ..config import CONF_DIR
 from ..reports import write_csv, write_text
 
-ROOT = CONF_DIR.parent
+ROOT = Path(__file__).resolve().parents[3]  # the checkout (ab compares checkouts)
 PROBE = Path(__file__).with_name("probe.py")
 # (probe arguments, what to call it): the demo's from-scratch model and the paper-size models
 DEFAULT_PROBES = (
@@ -79,9 +79,17 @@ def bench_ab(baseline: str, probes: tuple[str, ...] = DEFAULT_PROBES, rounds: in
                 if str(tree).startswith(scratch):
                     subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree.parent)],
                                    capture_output=True)
+    return report(raw, baseline, candidate, output, device, baseline_env, candidate_env)
+
+
+def report(raw: list[dict], baseline: str, candidate: str, output: str | None = None, device: str = "cpu",
+           baseline_env: dict | None = None, candidate_env: dict | None = None, note: str = "") -> list[dict]:
+    """Summarize raw rows (printed; with `output`, ab_raw.csv and ab_summary.md written there)."""
     rows = summarize(raw)
+    rounds = len({r["round"] for r in raw})
     label = (lambda tree, env: tree + (" with " + " ".join(f"{k}={v}" for k, v in env.items()) if env else ""))
     text = summary_markdown(rows, label(baseline, baseline_env), label(candidate, candidate_env), rounds, device)
+    text += f"\n{note}\n" if note else ""
     print("\n" + text)
     if output is not None:
         out = Path(output)
@@ -108,6 +116,24 @@ def summarize(raw: list[dict]) -> list[dict]:
                      "speed-up (median of rounds)": statistics.median(speedups),
                      "speed-up range": (min(speedups), max(speedups))})
     return rows
+
+
+LOG_LINE = re.compile(r"^bench ab: round (\d+)/(\d+) (baseline|candidate)\s+(.+): ([0-9.eE+-]+) (steps/s|ms|ops)$")
+
+
+def raw_from_log(text: str) -> list[dict]:
+    """The raw rows of a `bench ab` run from its printed log (what an interrupted run leaves): only the
+    rounds in which every probe ran on both trees."""
+    raw = [{"round": int(m[1]) - 1, "probe": m[4], "tree": m[3], "unit": m[6], "value": float(m[5])}
+           for m in map(LOG_LINE.match, text.splitlines()) if m]
+    if not raw:
+        raise ValueError("no `bench ab: round ...` lines in the log")
+    probes = dict.fromkeys(r["probe"] for r in raw)
+    complete = {k for k in {r["round"] for r in raw}
+                if len({(r["probe"], r["tree"]) for r in raw if r["round"] == k}) == 2 * len(probes)}
+    if not complete:
+        raise ValueError("the log has no complete round (every probe on both trees)")
+    return [r for r in raw if r["round"] in complete]
 
 
 def summary_markdown(rows: list[dict], baseline: str, candidate: str, rounds: int, device: str = "cpu") -> str:

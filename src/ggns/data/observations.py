@@ -17,6 +17,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from ..geometry import cell_edges, check_cells, signed_volumes
@@ -31,9 +32,10 @@ POINT_EXTENT_RATIO = 10.0  # bounding-box diagonal of a step's points over that 
 EXPECTED = "expected the normalized task space [-1, 1]^d shared by mesh, collider and points"
 
 
-def trajectory_from_arrays(rest_positions, cells, fixed, collider_faces, collider_positions,
-                           point_clouds: Sequence, youngs_modulus: float, poissons_ratio: float | None = None, *,
-                           true_positions=None, fix_orientation: bool = False,
+def trajectory_from_arrays(rest_positions: ArrayLike, cells: ArrayLike, fixed: ArrayLike, collider_faces: ArrayLike,
+                           collider_positions: ArrayLike, point_clouds: Sequence, youngs_modulus: float,
+                           poissons_ratio: float | None = None, *, true_positions: ArrayLike | None = None,
+                           fix_orientation: bool = False,
                            params: dict | None = None) -> Trajectory:
     """A checked `Trajectory` from plain arrays; ValueError naming the first problem found.
 

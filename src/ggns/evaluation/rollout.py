@@ -26,21 +26,13 @@ from .metrics import m_plus_10_starts
 from .schedules import EveryK, Never, Schedule
 from ..batch import TrajectoryBatch
 from ..checks import DeferredCheck, reads_cost
+from ..errors import RolloutError  # noqa: F401 (raised here; importable from here as before)
 from ..graphs.build import NeighbourCheck
 from ..graphs.connectivity import Connectivity
 from ..graphs.state import state_graph
 from ..phases import phase
 
 StepFn = Callable[[HeteroData, Any], tuple[Tensor, Any]]
-
-
-class RolloutError(RuntimeError):
-    """A rollout produced non-finite positions, or a node escaped the scene; `step` is the prediction
-    step (state step -> step + 1) where it happened."""
-
-    def __init__(self, message: str, step: int | None = None):
-        super().__init__(message)
-        self.step = step
 
 
 DEVICE_CHECK_EVERY = 32  # steps between reads of the rollout checks on a GPU

@@ -25,13 +25,10 @@ from dataclasses import dataclass
 
 import torch
 
+from ..errors import SimulationError  # noqa: F401 (raised here; importable from here as before)
 from .contact import signed_distance
 from .fem import TANGENTS, ElasticBody
 from .linalg import LINEAR_SOLVERS, SPARSE_MIN_FREE_DOFS, linear_algebra
-
-
-class SimulationError(RuntimeError):
-    """Numerical trouble in the simulator (non-finite state, no convergence), with where it happened."""
 
 
 @dataclass(frozen=True)

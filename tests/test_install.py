@@ -1,0 +1,77 @@
+"""The package installs as a user installs it and works outside the checkout: the wheel built from this
+tree goes into a fresh virtual environment that reuses the installed torch, torch-cluster and the other
+dependencies (through a .pth file, without this checkout's editable ggns), with pip offline, so a
+dependency range the installed versions do not satisfy fails here; then the console script and the
+commands a user starts with run from a folder outside the checkout, on the package's own presets and
+pretrained simulators."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _run(command: list[str], cwd: Path, env: dict | None = None, timeout: int = 600) -> str:
+    done = subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=timeout,
+                          env={**os.environ, **(env or {})})
+    assert done.returncode == 0, f"{' '.join(map(str, command))}\n{done.stdout[-2000:]}\n{done.stderr[-3000:]}"
+    return done.stdout + done.stderr
+
+
+@pytest.fixture(scope="module")
+def fresh_env(tmp_path_factory) -> Path:
+    work = tmp_path_factory.mktemp("install")
+    _run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(work / "dist"),
+          str(ROOT)], cwd=work)
+    (wheel,) = (work / "dist").glob("ggns-*.whl")
+    venv = work / "venv"
+    _run([sys.executable, "-m", "venv", "--without-pip", str(venv)], cwd=work)
+    # the installed dependencies, each linked into one folder that the fresh environment reads, ggns left out
+    shared = work / "shared"
+    shared.mkdir()
+    site = Path(sysconfig.get_paths()["purelib"])
+    for entry in site.iterdir():
+        if entry.name.lower().startswith(("ggns", "__editable__", "_ggns", "__pycache__")) or entry.suffix == ".pth":
+            continue
+        (shared / entry.name).symlink_to(entry)
+    (fresh_site,) = (venv / "lib").glob("python*/site-packages")
+    (fresh_site / "shared_dependencies.pth").write_text(f"{shared}\n")
+    python = venv / "bin" / "python"
+    out = _run([sys.executable, "-m", "pip", "--python", str(python), "install", "--no-index", str(wheel)], cwd=work)
+    assert "torch" not in out.split("Successfully installed")[-1], out  # nothing but ggns installed
+    return venv
+
+
+def test_the_wheel_works_from_a_folder_outside_the_checkout(fresh_env, tmp_path):
+    bin_ = fresh_env / "bin"
+    where = _run([str(bin_ / "python"), "-c", "import ggns, ggns.config as c; print(ggns.__file__); "
+                  "print(c.CONF_DIR.is_dir())"], cwd=tmp_path)
+    assert str(fresh_env) in where.splitlines()[0] and where.splitlines()[1] == "True", where
+    listed = _run([str(bin_ / "ggns"), "pretrained", "list"], cwd=tmp_path)
+    assert "plate/ggns" in listed and "tissue/ggns" in listed
+    # the commands of a first session, from tmp_path, in one process (each start-up costs seconds)
+    script = """
+import sys
+from ggns.__main__ import main
+
+def run(*args):
+    try:
+        main(list(args))
+    except SystemExit as stop:
+        if stop.code not in (0, None):
+            raise
+
+run("generate", "--config", "plate_tiny", "--split", "train,val,test", "--count", "2", "--output", "data/plate_tiny")
+run("rollout", "--checkpoint", "plate/ggns", "--input", "data/plate_tiny/test.h5", "--output", "predictions.h5")
+run("fit", "--config", "plate/mgn", "--data.dataset", "plate_tiny", "--data.data_dir", "data/plate_tiny",
+    "--trainer.fast_dev_run", "true", "--model.init_args.latent", "8", "--model.init_args.blocks", "1")
+"""
+    _run([str(bin_ / "python"), "-c", script], cwd=tmp_path, env={"OMP_NUM_THREADS": "1"})
+    assert (tmp_path / "data" / "plate_tiny" / "test.h5").is_file()
+    assert (tmp_path / "predictions.h5").is_file()

@@ -17,7 +17,7 @@ demo: setup
 	$(PY) -m ggns demo
 
 test: setup
-	$(PY) -m pytest -q -n auto --dist worksteal --durations=30
+	$(PY) -m pytest -q -n auto --dist loadgroup --durations=30
 
 bench: setup
 	$(PY) -m ggns bench sim --generate

@@ -195,9 +195,9 @@ def test_an_empty_or_far_away_point_cloud_rolls_out_as_no_points_at_that_step(ch
 
 
 # sweep and bench learning run fit (and test) as subprocesses: the subprocess's own error line reaches
-# the user as the command's one line, with the log that has the rest
-@pytest.mark.parametrize("bad", ["NaN positions", "truncated HDF5"])
-@pytest.mark.parametrize("entry", ["sweep", "bench learning"])
+# the user as the command's one line, with the log that has the rest (each entry with one kind of bad file:
+# the fit refuses every kind with its line, test_every_entry_point_refuses_every_bad_file_with_one_line)
+@pytest.mark.parametrize("bad, entry", [("NaN positions", "sweep"), ("truncated HDF5", "bench learning")])
 def test_sweep_and_bench_learning_pass_on_their_fits_error_line(bad, entry, cli_data, tmp_path, capsys):
     import yaml
 

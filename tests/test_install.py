@@ -67,11 +67,12 @@ def run(*args):
         if stop.code not in (0, None):
             raise
 
-run("generate", "--config", "plate_tiny", "--split", "train,val,test", "--count", "2", "--output", "data/plate_tiny")
-run("rollout", "--checkpoint", "plate/ggns", "--input", "data/plate_tiny/test.h5", "--output", "predictions.h5")
+run("generate", "--config", "plate_tiny", "--split", "train,val", "--count", "2", "--output", "data/plate_tiny")
+run("generate", "--config", "plate", "--split", "test", "--count", "1", "--output", "data/plate")
+run("rollout", "--checkpoint", "plate/ggns", "--input", "data/plate/test.h5", "--output", "predictions.h5")
 run("fit", "--config", "plate/mgn", "--data.dataset", "plate_tiny", "--data.data_dir", "data/plate_tiny",
     "--trainer.fast_dev_run", "true", "--model.init_args.latent", "8", "--model.init_args.blocks", "1")
 """
     _run([str(bin_ / "python"), "-c", script], cwd=tmp_path, env={"OMP_NUM_THREADS": "1"})
-    assert (tmp_path / "data" / "plate_tiny" / "test.h5").is_file()
+    assert (tmp_path / "data" / "plate" / "test.h5").is_file() and (tmp_path / "lightning_logs").is_dir()
     assert (tmp_path / "predictions.h5").is_file()

@@ -223,32 +223,28 @@ def save_untrained(model, path):
 
 
 # ---- scheduling on several test processes (`make test`: pytest-xdist, --dist loadgroup) -------------------------
-# The tests that take longest (each starts several real processes) run first, so that the last minutes are
-# not one process finishing a long test while the others idle; tests sharing an expensive session fixture run
-# in one process, which builds it once.
+# Each test file runs whole in one process, so that its module fixtures (generated data, trained models) are
+# built once; the files sharing the tiny registry (a session fixture that trains three simulators) run in one
+# process too. The tests that take longest (each starts several real processes) come first, so that the last
+# minutes are not one process finishing a long test while the others idle.
 SLOW_FIRST = (
     "test_a_sweep_killed_mid_fit_and_mid_test_finishes_with_the_uninterrupted_metrics",
     "test_two_seed_sweep_runs_skips_and_resumes",
     "test_two_ddp_processes_train_as_one_with_twice_the_batch",
     "test_two_tiny_variants_end_to_end_and_resume",
-    "test_a_fit_killed_with_sigkill",
     "test_the_wheel_works_from_a_folder_outside_the_checkout",
-    "test_a_fit_stopped_by_a_slurm_time_limit",
     "test_shipped_simulator_loads_and_reproduces_its_manifest",
-    "test_test_and_predict_refuse_more_than_one_process",
-    "test_plain_ddp_is_refused_before_it_can_hang",
-    "test_sweep_and_bench_learning_pass_on_their_fits_error_line",
-    "test_a_generator_killed_with_sigkill",
+    "test_the_demo_runs_end_to_end_on_tiny_sizes",
 )
-SHARED_FIXTURES = ("tiny_registry",)
+SHARED_GROUPS = {"test_demo.py": "tiny_registry", "test_pretrained.py": "tiny_registry"}
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups
 def pytest_collection_modifyitems(config, items):
     def rank(item) -> int:
         return next((i for i, name in enumerate(SLOW_FIRST) if item.name.startswith(name)), len(SLOW_FIRST))
 
     items.sort(key=rank)  # stable: the rest keep their order
     for item in items:
-        for name in SHARED_FIXTURES:
-            if name in getattr(item, "fixturenames", ()):
-                item.add_marker(pytest.mark.xdist_group(name))
+        name = item.path.name
+        item.add_marker(pytest.mark.xdist_group(SHARED_GROUPS.get(name, name)))

@@ -56,7 +56,7 @@ def test_the_wheel_works_from_a_folder_outside_the_checkout(fresh_env, tmp_path)
     listed = _run([str(bin_ / "ggns"), "pretrained", "list"], cwd=tmp_path)
     assert "plate/ggns" in listed and "tissue/ggns" in listed
     # the commands of a first session, from tmp_path, in one process (each start-up costs seconds)
-    script = """
+    script = r"""
 import sys
 from ggns.__main__ import main
 
@@ -67,12 +67,18 @@ def run(*args):
         if stop.code not in (0, None):
             raise
 
-run("generate", "--config", "plate_tiny", "--split", "train,val", "--count", "2", "--output", "data/plate_tiny")
+from pathlib import Path
+from ggns.config import CONF_DIR
+
+# a user's own preset over a shipped one: the tiny plate with 12 states (validation's m+10 needs more than 10)
+Path("tiny12.yaml").write_text(f"base: {CONF_DIR / 'data' / 'plate_tiny.yaml'}\nscene:\n  num_steps: 12\n"
+                               "output: data/plate_tiny12\n")
+run("generate", "--config", "tiny12.yaml", "--split", "train,val", "--count", "2")
 run("generate", "--config", "plate", "--split", "test", "--count", "1", "--output", "data/plate")
 run("rollout", "--checkpoint", "plate/ggns", "--input", "data/plate/test.h5", "--output", "predictions.h5")
-run("fit", "--config", "plate/mgn", "--data.dataset", "plate_tiny", "--data.data_dir", "data/plate_tiny",
+run("fit", "--config", "plate/mgn", "--data.dataset", "tiny12.yaml", "--data.data_dir", "data/plate_tiny12",
     "--trainer.fast_dev_run", "true", "--model.init_args.latent", "8", "--model.init_args.blocks", "1")
 """
     _run([str(bin_ / "python"), "-c", script], cwd=tmp_path, env={"OMP_NUM_THREADS": "1"})
-    assert (tmp_path / "data" / "plate" / "test.h5").is_file() and (tmp_path / "lightning_logs").is_dir()
+    assert (tmp_path / "data" / "plate" / "test.h5").is_file() and (tmp_path / "data" / "plate_tiny12" / "train.h5").is_file()
     assert (tmp_path / "predictions.h5").is_file()

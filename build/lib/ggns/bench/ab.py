@@ -1,0 +1,147 @@
+"""`python -m ggns bench ab`: this checkout against a baseline commit, measured in one run on one
+machine. Each probe (`bench.probe`: a training iteration, a rollout step, a Lightning fit) runs in a
+fresh subprocess per source tree, the trees alternating within every round (A B, then B A) so that a
+machine that speeds up or slows down during the run treats both alike; the report gives each tree's
+median and the median of the per-round ratios (paired, the robust number on a noisy machine).
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from ..reports import write_csv, write_text
+
+ROOT = Path(__file__).resolve().parents[3]  # the checkout (ab compares checkouts)
+PROBE = Path(__file__).with_name("probe.py")
+# (probe arguments, what to call it): the demo's from-scratch model and the paper-size models
+DEFAULT_PROBES = (
+    "fit ggns 64 3 8", "train ggns 64 3 8", "train ggns 128 5 32", "train mgn 128 5 32",
+    "rollout ggns 128 5 1 every:1", "rollout ggns 128 5 32 every:1", "rollout mgn 128 5 1 never",
+)
+
+
+def source_tree(spec: str, scratch: Path) -> Path:
+    """The `src` folder of `spec`: a path to a checkout, or a commit of this repository (checked out
+    into a worktree under `scratch`)."""
+    path = Path(spec)
+    if (path / "src" / "ggns").is_dir():
+        return (path / "src").resolve()
+    target = scratch / f"tree_{spec}"
+    if not target.exists():
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(target), spec], check=True,
+                       capture_output=True)
+    return target / "src"
+
+
+def run_probe(tree: Path, probe: str, threads: int | None, device: str = "cpu", extra_env: dict | None = None) -> dict:
+    """One probe in a subprocess importing ggns from `tree`, with `extra_env` set; its JSON line (ValueError
+    with its stderr if it fails)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), *filter(None, [os.environ.get("PYTHONPATH")])]),
+           "GGNS_PROBE_DEVICE": device, **(extra_env or {})}
+    if threads:
+        env["OMP_NUM_THREADS"] = str(threads)
+    done = subprocess.run([sys.executable, "-P", str(PROBE), *probe.split()], cwd=ROOT, env=env, capture_output=True,
+                          text=True)
+    lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
+    if done.returncode or not lines:
+        raise ValueError(f"probe {probe!r} on {tree} failed ({done.returncode}):\n{done.stderr[-2000:]}")
+    return json.loads(lines[-1])
+
+
+def bench_ab(baseline: str, probes: tuple[str, ...] = DEFAULT_PROBES, rounds: int = 5, candidate: str = str(ROOT),
+             output: str | None = None, threads: int | None = None, device: str = "cpu",
+             baseline_env: dict | None = None, candidate_env: dict | None = None) -> list[dict]:
+    if rounds < 1:
+        raise ValueError(f"rounds must be >= 1, got {rounds}")
+    with tempfile.TemporaryDirectory() as scratch:
+        trees = {"baseline": source_tree(baseline, Path(scratch)), "candidate": source_tree(candidate, Path(scratch))}
+        raw = []
+        try:
+            for r in range(rounds):
+                order = list(trees) if r % 2 == 0 else list(reversed(trees))
+                for probe in probes:
+                    for name in order:
+                        env = baseline_env if name == "baseline" else candidate_env
+                        result = run_probe(trees[name], probe, threads, device, env)
+                        value_key = next(k for k in ("steps/s", "ms", "ops") if k in result)
+                        raw.append({"round": r, "probe": probe, "tree": name, "unit": value_key,
+                                    "value": result[value_key]})
+                        print(f"bench ab: round {r + 1}/{rounds} {name:9s} {probe}: {result[value_key]:.2f} {value_key}",
+                              flush=True)
+        finally:
+            for name, tree in trees.items():
+                if str(tree).startswith(scratch):
+                    subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree.parent)],
+                                   capture_output=True)
+    return report(raw, baseline, candidate, output, device, baseline_env, candidate_env)
+
+
+def report(raw: list[dict], baseline: str, candidate: str, output: str | None = None, device: str = "cpu",
+           baseline_env: dict | None = None, candidate_env: dict | None = None, note: str = "") -> list[dict]:
+    """Summarize raw rows (printed; with `output`, ab_raw.csv and ab_summary.md written there)."""
+    rows = summarize(raw)
+    rounds = len({r["round"] for r in raw})
+    label = (lambda tree, env: tree + (" with " + " ".join(f"{k}={v}" for k, v in env.items()) if env else ""))
+    text = summary_markdown(rows, label(baseline, baseline_env), label(candidate, candidate_env), rounds, device)
+    text += f"\n{note}\n" if note else ""
+    print("\n" + text)
+    if output is not None:
+        out = Path(output)
+        write_csv(out / "ab_raw.csv", raw, list(raw[0]))
+        write_text(out / "ab_summary.md", text)
+        print(f"wrote {out / 'ab_raw.csv'} and {out / 'ab_summary.md'}")
+    return rows
+
+
+def summarize(raw: list[dict]) -> list[dict]:
+    """Per probe: each tree's median and the median per-round speed-up of the candidate (baseline ms /
+    candidate ms, or candidate steps/s / baseline steps/s; for operator counts the reduction)."""
+    rows = []
+    for probe in dict.fromkeys(r["probe"] for r in raw):
+        mine = [r for r in raw if r["probe"] == probe]
+        unit = mine[0]["unit"]
+        value = {(r["round"], r["tree"]): r["value"] for r in mine}
+        rounds = sorted({r["round"] for r in mine})
+        speedups = [(value[k, "candidate"] / value[k, "baseline"]) if unit == "steps/s" else
+                    (value[k, "baseline"] / value[k, "candidate"]) for k in rounds]
+        rows.append({"probe": probe, "unit": unit,
+                     "baseline": statistics.median(value[k, "baseline"] for k in rounds),
+                     "candidate": statistics.median(value[k, "candidate"] for k in rounds),
+                     "speed-up (median of rounds)": statistics.median(speedups),
+                     "speed-up range": (min(speedups), max(speedups))})
+    return rows
+
+
+LOG_LINE = re.compile(r"^bench ab: round (\d+)/(\d+) (baseline|candidate)\s+(.+): ([0-9.eE+-]+) (steps/s|ms|ops)$")
+
+
+def raw_from_log(text: str) -> list[dict]:
+    """The raw rows of a `bench ab` run from its printed log (what an interrupted run leaves): only the
+    rounds in which every probe ran on both trees."""
+    raw = [{"round": int(m[1]) - 1, "probe": m[4], "tree": m[3], "unit": m[6], "value": float(m[5])}
+           for m in map(LOG_LINE.match, text.splitlines()) if m]
+    if not raw:
+        raise ValueError("no `bench ab: round ...` lines in the log")
+    probes = dict.fromkeys(r["probe"] for r in raw)
+    complete = {k for k in {r["round"] for r in raw}
+                if len({(r["probe"], r["tree"]) for r in raw if r["round"] == k}) == 2 * len(probes)}
+    if not complete:
+        raise ValueError("the log has no complete round (every probe on both trees)")
+    return [r for r in raw if r["round"] in complete]
+
+
+def summary_markdown(rows: list[dict], baseline: str, candidate: str, rounds: int, device: str = "cpu") -> str:
+    lines = [f"bench ab on {device}: candidate {candidate} against baseline {baseline}, {rounds} rounds, trees alternating",
+             "", "| probe | unit | baseline (median) | candidate (median) | speed-up (median of rounds) | range |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        low, high = r["speed-up range"]
+        lines.append(f"| `{r['probe']}` | {r['unit']} | {r['baseline']:.2f} | {r['candidate']:.2f} | "
+                     f"{r['speed-up (median of rounds)']:.2f}x | {low:.2f}-{high:.2f}x |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,170 @@
+"""The Lightning CLI: `python -m ggns {fit,validate,test,predict} --config conf/plate/<model>.yaml`.
+
+Any `GraphSimulator` subclass is a model (`--model ggns.models.simulators.GGNS` or a config's
+`model.class_path`); the data is a `SimulationDataModule`. Configs are parsed in omegaconf mode
+(so `${...}` interpolation works), the run's full config is saved next to its TensorBoard logs
+(runs without a logger save none),
+and `--ckpt_path` resumes a fit or picks the checkpoint to test (the model then takes the
+checkpoint's hyperparameters, except the evaluation settings `EVALUATION_ARGS`); `--ckpt_path
+pretrained:plate/ggns` (or the shipped file's path) takes a shipped simulator, verified against its
+manifest and refused for data of another scene (`ggns.pretrained`). Nothing given is
+silently dropped for the checkpoint's: a checkpoint of another model class than the config's is
+refused, and so is a model argument given on the command line that the checkpoint would replace
+by a different value (`CheckpointMismatchError`). A trainer with a logger also logs the learning
+rate of every optimizer step as `train/lr` (Lightning's LearningRateMonitor). A fit stopped by SIGTERM
+(a cluster's pre-emption, `kill`) saves its state to last.ckpt before it ends (`LastCheckpointOnSigterm`),
+and `python -m ggns` then exits with status 143, so a resume continues from the step it stopped at.
+"""
+from __future__ import annotations
+
+import re
+import sys
+
+from pytorch_lightning import Trainer
+from pytorch_lightning.callbacks import Callback, LearningRateMonitor, ModelCheckpoint
+from pytorch_lightning.cli import LightningCLI, SaveConfigCallback
+from pytorch_lightning.trainer.states import TrainerFn
+from pytorch_lightning.utilities.exceptions import SIGTERMException
+
+from .checkpoints import check_format, read_checkpoint
+from .config import config_file, load_config
+from .data.module import SimulationDataModule
+from .models.simulators import GraphSimulator
+from .pretrained import PREFIX, check_data, checkpoint_path, shipped_name
+
+# Evaluation settings, not part of a trained model: with --ckpt_path they still come from the command
+# line and config (Lightning replaces every other model argument by the checkpoint's hyperparameters).
+EVALUATION_ARGS = ("eval_schedules", "test_m_plus_10", "test_iou")
+
+
+class CheckpointMismatchError(ValueError):
+    """--ckpt_path names a checkpoint that contradicts the model the config or the command line asks for."""
+
+
+def command_line_model_args(args: list[str]) -> set[str]:
+    """The model init arguments given on a command line (`--model.init_args.NAME[=V]` or `--model.NAME`)."""
+    names = set()
+    for arg in args:
+        match = re.match(r"--model\.(?:init_args\.)?([A-Za-z_]\w*)(?:=|$)", str(arg))
+        if match and match.group(1) not in ("class_path", "init_args", "dict_kwargs"):
+            names.add(match.group(1))
+    return names
+
+
+class RunConfigCallback(SaveConfigCallback):
+    """Saves the run's full config next to its logs; a run without a logger has no log directory
+    of its own (Lightning would write config.yaml into the working directory) and saves none."""
+
+    def setup(self, trainer: Trainer, pl_module, stage: str) -> None:
+        if trainer.loggers:
+            super().setup(trainer, pl_module, stage)
+
+
+class LastCheckpointOnSigterm(Callback):
+    """On SIGTERM (Lightning stops at the end of the running batch), saves the fit's state where its
+    `last` ModelCheckpoint keeps it, so that resuming from last.ckpt loses no finished step."""
+
+    def on_exception(self, trainer: Trainer, pl_module, exception: BaseException) -> None:
+        if not isinstance(exception, SIGTERMException) or trainer.state.fn != TrainerFn.FITTING:
+            return
+        for callback in trainer.checkpoint_callbacks:
+            if isinstance(callback, ModelCheckpoint) and callback.filename == "last" and callback.dirpath:
+                trainer.save_checkpoint(callback.format_checkpoint_name({}, callback.filename))
+
+
+class SimulatorCLI(LightningCLI):
+    """LightningCLI whose trainers, when they have a logger, log the learning rate per optimizer step
+    (under the scheduler's name, `train/lr` for the simulators); without a logger the monitor would raise."""
+
+    def instantiate_trainer(self, **kwargs) -> Trainer:
+        trainer = super().instantiate_trainer(**kwargs)
+        if trainer.loggers and not any(isinstance(c, LearningRateMonitor) for c in trainer.callbacks):
+            trainer.callbacks.append(LearningRateMonitor(logging_interval="step"))
+        trainer.callbacks.append(LastCheckpointOnSigterm())
+        return trainer
+
+    def parse_arguments(self, parser, args) -> None:
+        if not isinstance(args, dict):
+            args = shipped_configs([str(a) for a in (sys.argv[1:] if args is None else args)])
+        self._given_args = args if not isinstance(args, dict) else []
+        super().parse_arguments(parser, args)
+
+    def _parse_ckpt_path(self) -> None:
+        """Lightning's: the checkpoint's hyperparameters replace the model arguments, except
+        EVALUATION_ARGS; refused when the checkpoint's model class differs from the config's, or
+        when it would replace a model argument given on the command line by another value."""
+        subcommand = self.config.get("subcommand")
+        if not subcommand or not self.config[subcommand].get("ckpt_path"):
+            return super()._parse_ckpt_path()
+        self._check_pretrained(subcommand)
+        model = self.config[subcommand].model
+        init_args = model.get("init_args")
+        asked_class = model.get("class_path")
+        given = {k: init_args[k] for k in command_line_model_args(getattr(self, "_given_args", []))
+                 if init_args is not None and k in init_args and k not in EVALUATION_ARGS}
+        kept = {k: init_args[k] for k in EVALUATION_ARGS if init_args is not None and k in init_args}
+        super()._parse_ckpt_path()
+        model = self.config[subcommand].model
+        path = self.config[subcommand].ckpt_path
+        if asked_class and model.get("class_path") != asked_class:
+            raise CheckpointMismatchError(
+                f"{path} holds a {model.get('class_path')}, but the config asks for {asked_class}: test it "
+                f"with that model's config (e.g. conf/plate/<model>.yaml) or pass --model {model.get('class_path')}")
+        shadowed = {k: (v, model.init_args[k]) for k, v in given.items() if _differ(v, model.init_args.get(k))}
+        if shadowed:
+            raise CheckpointMismatchError(
+                f"{path} was trained with other values of the model arguments given on the command line, which "
+                "the checkpoint's would replace: " + ", ".join(f"{k}: given {a!r}, checkpoint {b!r}"
+                                                               for k, (a, b) in shadowed.items()) +
+                f" (only the evaluation settings {list(EVALUATION_ARGS)} can change at test time)")
+        for key, value in kept.items():
+            self.config[subcommand].model.init_args[key] = value
+
+    def _check_pretrained(self, subcommand: str) -> None:
+        """`--ckpt_path pretrained:<task>/<model>` (or a shipped file's path): the verified shipped file
+        (`ggns.pretrained.verify`), refused for data of another scene than it was trained on. Any other
+        checkpoint is read as data first (`ggns.checkpoints`), so a file that would run code or is of
+        another format is refused with the reason rather than a traceback."""
+        given = str(self.config[subcommand].ckpt_path)
+        name = given.removeprefix(PREFIX) if given.startswith(PREFIX) else shipped_name(given)
+        if name is None:
+            check_format(read_checkpoint(given), given)  # refused with the reason, before Lightning reads it
+            return
+        self.config[subcommand].ckpt_path = str(checkpoint_path(name))
+        data = self.config[subcommand].get("data") or {}
+        dataset = (data.get("init_args") or data).get("dataset") or "plate_small"
+        check_data(name, load_config(dataset), source=f"data preset {dataset!r}")
+
+
+def _differ(given, stored) -> bool:
+    """Whether two argument values differ (lists and tuples compared by their items)."""
+    normalize = (lambda v: list(v) if isinstance(v, (list, tuple)) else v)
+    return normalize(given) != normalize(stored)
+
+
+def shipped_configs(args: list[str]) -> list[str]:
+    """`--config` values that name a shipped config (`plate/ggns`, or `conf/plate/ggns.yaml` from a folder
+    without that file) replaced by the package's file (ggns.config.config_file), so that the presets work
+    from any folder once ggns is installed."""
+    out = list(args)
+    for i, arg in enumerate(out):
+        if arg == "--config" and i + 1 < len(out):
+            out[i + 1] = str(config_file(out[i + 1]))
+        elif arg.startswith("--config="):
+            out[i] = "--config=" + str(config_file(arg.split("=", 1)[1]))
+    return out
+
+
+def build_cli(args: list[str] | None = None, run: bool = True) -> LightningCLI:
+    """Parse `args` (a subcommand first when run=True) and, if `run`, execute it."""
+    return SimulatorCLI(
+        GraphSimulator,
+        SimulationDataModule,
+        subclass_mode_model=True,
+        parser_kwargs={"parser_mode": "omegaconf"},
+        save_config_callback=RunConfigCallback,
+        save_config_kwargs={"overwrite": True},
+        seed_everything_default=0,
+        args=args,
+        run=run,
+    )

@@ -1,0 +1,69 @@
+"""Rollouts of whole trajectories for a predictions file (`python -m ggns rollout`, notebooks): the
+check that a model fits the data (`check_model_fits`) and the batched rollouts of a list of
+trajectories through the model's `rollout`, i.e. the one engine (`rollout_trajectories`).
+
+A model's task is read from its connectivity preset's name (`plate_full_graph` -> plate,
+`tissue_mgn` -> tissue), which every config of conf/plate and conf/tissue follows.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..batch import TrajectoryBatch
+from ..scenes import SCENES
+from ..trajectory import Trajectory
+from .evaluate import split_trajectories
+from .schedules import Schedule, effective_schedule
+
+
+def model_scene(model) -> str | None:
+    """The scene a simulator was configured for, from its connectivity preset's name; None if it names none."""
+    name = Path(str(model.hparams.get("connectivity", ""))).stem
+    scene = name.split("_")[0]
+    return scene if scene in SCENES else None
+
+
+def check_model_fits(model, dim: int, scene: str | None = None, task: str | None = None) -> None:
+    """ValueError when `model` cannot roll out data of dimension `dim` (and of `scene`): a model of
+    another dimension, or one trained for another task (`task`, e.g. from a pretrained registry, else
+    `model_scene`). The task is compared only when both it and `scene` name a scene of ggns.scenes (a
+    split written from your own arrays may name its scene anything)."""
+    model_dim = int(model.hparams.get("dim", dim))
+    name = type(model).__name__
+    if model_dim != dim:
+        raise ValueError(f"the {name} model is {model_dim}D, the data are {dim}D: use a checkpoint trained on "
+                         f"{dim}D data")
+    task = task or model_scene(model)
+    if scene in SCENES and task in SCENES and scene != task:
+        raise ValueError(f"the {name} model was trained for the {task} task, the data are of the {scene} scene: "
+                         f"use a checkpoint of the {scene} task")
+
+
+def rollout_trajectories(model, trajectories: Sequence[Trajectory], schedule: Schedule | str,
+                         batch_size: int = 8) -> list[np.ndarray]:
+    """Each trajectory's rollout from its initial state under the model's effective schedule (never
+    for a model without point clouds), [T, N, d] float32 on the CPU, in order; consecutive
+    trajectories with equal T are rolled out `batch_size` at a time on the model's device."""
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    if not trajectories:
+        return []
+    dims = {t.dim for t in trajectories}
+    if len(dims) > 1:
+        raise ValueError(f"the trajectories mix dimensions {sorted(dims)}")
+    check_model_fits(model, dims.pop())
+    plan = effective_schedule(schedule, model.uses_points)
+    out: list[np.ndarray] = []
+    start = 0
+    while start < len(trajectories):
+        stop = start + 1
+        while (stop < len(trajectories) and stop - start < batch_size
+               and trajectories[stop].num_steps == trajectories[start].num_steps):
+            stop += 1
+        batch = TrajectoryBatch.from_trajectories(list(trajectories[start:stop]), device=model.device)
+        out += [x[0].numpy() for x in split_trajectories(model.rollout(batch, plan), batch)]
+        start = stop
+    return out

@@ -1,0 +1,204 @@
+"""Learning per CPU-second (`python -m ggns bench learning`): how fast named variants of one model
+config learn within the same wall-clock budget, from their TensorBoard curves.
+
+A learning file (conf/learning/<name>.yaml or a path) holds:
+    output: lightning_logs/learning/plate_ggns  # a variant logs to <output>/<variant>/seed_<seed>
+    minutes: 10                                 # wall-clock budget per variant (trainer.max_time)
+    val_every: 100                              # optimizer steps between validations
+    seed: 0
+    parallel: 2                                 # variants at once (torch threads = cores / parallel)
+    base: {config: conf/plate/ggns.yaml, args: ["--data.dataset", "plate_small"]}
+    variants:                                   # name -> Lightning CLI arguments (after the base's)
+      paper: []
+      noise_0.005: ["--model.init_args.noise_std", "0.005"]
+
+Each variant is one `python -m ggns fit` in its own process (`sweep.Run` builds the command), with
+the budget and validation arguments first, then the base's, then the variant's (later ones win),
+plus a `TrainingClock` callback. A variant is finished when its fit exited cleanly
+(`<run>/learning_finished.json`); finished variants are skipped, an interrupted one resumes from its
+`last.ckpt`. `write_report` then reads the event files and writes <output>/learning.md,
+learning.csv, curves_steps.png and curves_seconds.png.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Sequence
+
+import pytorch_lightning as pl
+from omegaconf import OmegaConf
+
+from ..config import resolve_preset
+from ..reports import write_csv, write_json
+from .curves import CLOCK, COLUMNS, LATE_STEPS, RATIO_THRESHOLD, markdown_rows, plot_curves, read_scalars, variant_row
+from .sweep import Run, RunFailed
+
+FINISHED = "learning_finished.json"
+
+
+class TrainingClock(pl.Callback):
+    """Logs `time/train_seconds` with the training metrics (every `log_every_n_steps`) and at every
+    validation: wall seconds since training started minus the seconds spent in validation loops.
+    The normalization pass and the sanity check (both before training starts) are not counted;
+    checkpoint writing is. The count is saved in checkpoints, so a resumed fit continues it."""
+
+    def __init__(self):
+        self.train_seconds = 0.0
+        self._since: float | None = None  # None while not training
+        self._paused = False  # in a validation loop that interrupted training
+
+    def _lap(self) -> None:
+        if self._since is not None:
+            now = time.perf_counter()
+            self.train_seconds += now - self._since
+            self._since = now
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        self._since = time.perf_counter()
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        self._lap()
+        pl_module.log(CLOCK, self.train_seconds, on_step=True, on_epoch=False, batch_size=1)
+
+    def on_validation_start(self, trainer, pl_module) -> None:
+        if self._since is not None:
+            self._lap()
+            self._since, self._paused = None, True
+
+    def on_validation_epoch_end(self, trainer, pl_module) -> None:
+        if not trainer.sanity_checking:
+            pl_module.log(CLOCK, self.train_seconds, batch_size=1)
+
+    def on_validation_end(self, trainer, pl_module) -> None:
+        if self._paused:
+            self._since, self._paused = time.perf_counter(), False
+
+    def state_dict(self) -> dict:
+        return {"train_seconds": self.train_seconds}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.train_seconds = float(state_dict["train_seconds"])
+
+
+# ---- the variants ---------------------------------------------------------------------------------
+def load_learning(name_or_path: str | Path, overrides: Sequence[str] = ()) -> dict:
+    """The learning file (module docstring) with `key=value` overrides, checked."""
+    path = resolve_preset(name_or_path, "learning")
+    spec = OmegaConf.to_container(OmegaConf.merge(OmegaConf.load(path), OmegaConf.from_dotlist(list(overrides))),
+                                  resolve=True)
+    missing = [k for k in ("output", "minutes", "val_every", "base", "variants") if k not in spec]
+    if missing:
+        raise ValueError(f"{path}: learning file lacks {missing}")
+    base = spec["base"]
+    if not isinstance(base, dict) or "config" not in base:
+        raise ValueError(f"{path}: `base` needs a `config` (a Lightning config file)")
+    if not Path(base["config"]).is_file():
+        raise FileNotFoundError(f"{path}: base config {base['config']} not found")
+    if not isinstance(spec["variants"], dict) or not spec["variants"]:
+        raise ValueError(f"{path}: `variants` must map at least one name to a list of CLI arguments")
+    for name, args in spec["variants"].items():
+        if not isinstance(args, list):
+            raise ValueError(f"{path}: variant {name!r} must be a list of CLI arguments, got {args!r}")
+        if not name or "/" in name or name.startswith("."):
+            raise ValueError(f"{path}: variant name {name!r} is not a directory name")
+    if not float(spec["minutes"]) > 0:
+        raise ValueError(f"{path}: minutes must be > 0, got {spec['minutes']}")
+    if int(spec["val_every"]) < 1:
+        raise ValueError(f"{path}: val_every must be >= 1 optimizer steps, got {spec['val_every']}")
+    return spec
+
+
+def max_time(minutes: float) -> str:
+    """Lightning's `trainer.max_time` string DD:HH:MM:SS for a budget in minutes (whole seconds, at least 1)."""
+    seconds = max(1, round(float(minutes) * 60))
+    return f"{seconds // 86400:02d}:{seconds // 3600 % 24:02d}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+def variant_runs(spec: dict) -> list[Run]:
+    """One fit per variant, in the file's order."""
+    budget = ["--trainer.max_time", max_time(spec["minutes"]), "--trainer.max_epochs", "-1",
+              "--trainer.val_check_interval", str(int(spec["val_every"])),
+              "--trainer.check_val_every_n_epoch", "null",
+              f"--trainer.callbacks+={TrainingClock.__module__}.{TrainingClock.__name__}"]
+    base = [str(a) for a in spec["base"].get("args", [])]
+    return [Run(name, int(spec.get("seed", 0)), str(spec["base"]["config"]),
+                tuple(budget + base + [str(a) for a in args]), Path(spec["output"]))
+            for name, args in spec["variants"].items()]
+
+
+def fit_variant(run: Run, threads: int | None = None, log=print) -> Run:
+    """The variant's fit in its own process (resuming a left-over last.ckpt); skipped when finished
+    with the same arguments, an error when finished with others."""
+    marker = run.fit_dir / FINISHED
+    if marker.is_file():
+        done = json.loads(marker.read_text())
+        if list(done["args"]) != list(run.args):
+            raise ValueError(f"variant {run.model!r} finished with other arguments than now ({marker}); "
+                             f"delete {run.fit_dir} or rename the variant")
+        log(f"skip {run.model}: {marker} exists")
+        return run
+    run.fit_dir.mkdir(parents=True, exist_ok=True)
+    log(f"fit {run.model}")
+    start = time.perf_counter()
+    with open(run.output / run.model / f"seed_{run.seed}.log", "a") as out:
+        result = subprocess.run(run.fit_command(), stdout=out, stderr=subprocess.STDOUT,
+                                env={**os.environ, **({"OMP_NUM_THREADS": str(threads)} if threads else {})})
+    if result.returncode != 0:
+        raise RunFailed.of(f"fit of variant {run.model}", result.returncode, out.name)
+    write_json(marker, {"args": list(run.args), "process_seconds": time.perf_counter() - start})
+    return run
+
+
+def run_learning(spec: dict, only: Sequence[str] | None = None, log=print) -> Path:
+    """Fit the variants (`only` these names, else all; `parallel` at once), then `write_report`."""
+    runs = variant_runs(spec)
+    if only:
+        unknown = sorted(set(only) - {r.model for r in runs})
+        if unknown:
+            raise ValueError(f"unknown variants {unknown} (known: {[r.model for r in runs]})")
+        runs = [r for r in runs if r.model in only]
+    parallel = max(1, int(spec.get("parallel", 1)))
+    threads = max(1, (os.cpu_count() or 1) // parallel)
+    with ThreadPoolExecutor(parallel) as pool:
+        list(pool.map(lambda r: fit_variant(r, threads, log), runs))
+    return write_report(spec, log=log)
+
+
+def write_report(spec: dict, log=print) -> Path:
+    """learning.md, learning.csv and the two curve figures in the spec's output, from the event
+    files of every variant that logged anything (finished or not)."""
+    output = Path(spec["output"])
+    runs = [r for r in variant_runs(spec) if r.fit_dir.is_dir()]
+    if not runs:
+        raise FileNotFoundError(f"{output}: no variant has run yet")
+    curves = {r.model: read_scalars(r.fit_dir) for r in runs}
+    rows = [variant_row(r.model, spec["variants"][r.model], curves[r.model]) for r in runs]
+    write_csv(output / "learning.csv", rows, COLUMNS)
+    figures = [plot_curves(curves, output / f"curves_{x}.png", x) for x in ("steps", "seconds")]
+    finished = [r.model for r in runs if (r.fit_dir / FINISHED).is_file()]
+    clocked = [r.model for r in runs if CLOCK in curves[r.model]]
+    base = spec["base"]
+    lines = ["# Learning per CPU-second", "",
+             f"Base: `{base['config']}` with `{' '.join(map(str, base.get('args', []))) or '(no arguments)'}`; "
+             f"seed {spec.get('seed', 0)}; budget {spec['minutes']} min of wall-clock per variant "
+             f"(`trainer.max_time`, validation included); validation every {spec['val_every']} optimizer steps; "
+             f"{spec.get('parallel', 1)} variant(s) at once. Finished: {len(finished)} of {len(spec['variants'])} "
+             f"variants ({', '.join(finished) or 'none'}).", "",
+             "Training seconds exclude validation (`TrainingClock`)" +
+             ("" if len(clocked) == len(runs) else f" except for {sorted(set(curves) - set(clocked))}, whose "
+              "seconds are wall seconds since the first event, validation included, and which have no steps/s") +
+             f". One-step ratio: `val/one_step_ratio`, the one-step MSE over the zero-motion MSE; the step (and "
+             f"training seconds) of the first validation at or below {RATIO_THRESHOLD}. Rollout MSE at the last "
+             "validation / the best one. Slope: log10 rollout (or m+10) MSE per 1000 steps, least squares over the "
+             "validations in the second half of the steps (negative: still falling). m+10: `val/m10_mse`. Train loss: "
+             f"the normalized training loss of graphs with / without a point cloud, mean of the values logged in "
+             f"the last {LATE_STEPS} optimizer steps. n/a: not logged.", "",
+             markdown_rows(rows)] + [f"![{p.stem}]({p.name})" for p in figures]
+    path = output / "learning.md"
+    path.write_text("\n".join(lines) + "\n")
+    log(f"wrote {path}, {output / 'learning.csv'} and {', '.join(p.name for p in figures)}")
+    return path

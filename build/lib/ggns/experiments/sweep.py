@@ -1,0 +1,531 @@
+"""Multi-seed sweeps: a grid of model configs x seeds, each run a Lightning `fit` then `test`
+through the CLI in its own process, several at once, resumable.
+
+A sweep file (conf/sweeps/<name>.yaml or a path) holds:
+    output: lightning_logs/sweeps/plate     # runs go to <output>/<model>/seed_<s>[_test]
+    seeds: [0, 1, 2]
+    parallel: 2                             # runs at once on this machine
+    args: ["--data.dataset", "plate_small"] # CLI arguments for every run
+    models:                                 # name -> Lightning config (+ its own arguments)
+      ggns: {config: conf/plate/ggns.yaml, args: []}
+      mgn:  {config: conf/plate/mgn.yaml}
+    findings_ggns: [ggns_id]                # optional: variants of GGNS that the summary also judges
+                                            # in GGNS's place (the paper's findings, the targets)
+
+Each metric family of a run is tested with the checkpoint selected on that family
+(`ggns.evaluation.selection`; `Run.checkpoints`): one `test` per distinct checkpoint, computing
+only the metrics of the families it was selected for (`TestPart`, in
+<output>/<model>/seed_<s>_test/<checkpoint name>/), then merged into
+<output>/<model>/seed_<s>_test/test_metrics.{json,md}, whose "checkpoints" entry names, per
+family, the checkpoint (global step, the scalar it was selected on) and any fallback.
+
+A run is finished when that merged `test_metrics.json` exists; finished runs are skipped, a test
+part whose `test_metrics.json` exists is not run again (nor the fit, which ended before it), and a
+fit that left `last.ckpt` behind is resumed from it, so an interrupted sweep continues where it
+stopped. `summarize` aggregates the finished runs into <output>/summary.{md,csv}. On a cluster,
+`slurm_script` renders a job array with one task per run (`python -m ggns sweep --config ...
+--task $SLURM_ARRAY_TASK_ID`).
+
+`run_baselines` scores the baselines of `ggns.baselines.scores` on the sweep's test trajectories and
+stores them beside its runs. It is configured by the sweep file's optional `baselines` section
+(Alpha Shapes and initial-mesh generation: 2D datasets only; the static row: 2D and 3D):
+
+
+    baselines:
+      dataset: plate_small      # data preset whose test split is scored
+      data_dir: null            # overrides the preset's directory
+      max_trajectories: 9       # the first n test trajectories, as the runs' test (null: all)
+      alpha_shapes: true
+      static: true
+      initial_mesh: [ggns, mgn] # sweep models rolled out from the generated mesh, each under its
+                                # own evaluation schedules (the model's `eval_schedules`), each
+                                # schedule with the checkpoint its family was tested with
+
+Existing result files are kept (an interrupted sweep resumes); delete them to recompute.
+"""
+from __future__ import annotations
+
+import inspect
+import json
+import os
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from ..baselines.scores import (ALPHA_SHAPES, GENERATED_MESH_FILE, STATIC, alpha_shapes_metrics,
+                               generated_mesh_metrics, static_metrics)
+from ..baselines.scores import ROWS as BASELINE_ROWS
+from ..reports import markdown_table, write_json, write_text
+from ..config import resolve_preset
+from ..data.module import SPLITS, SimulationDataModule
+from ..evaluation.evaluate import metrics_markdown
+from ..evaluation.schedules import parse_schedule
+from ..evaluation.selection import (CHECKPOINT_KEY, CHECKPOINTS_KEY, FAMILY_CHECKPOINT, M10, ONE_STEP, candidates,
+                                    checkpoint_glob, checkpoint_info, describe, metric_family)
+from ..models.simulators import load_simulator
+from .aggregate import RunResult, aggregate, load_run, normalized_benefit, to_csv, to_markdown
+from .curves import LATE_STEPS, markdown_rows, plot_curves, read_scalars, variant_row
+from .findings import as_ggns, check_findings, check_targets, findings_markdown
+from .figures import write_figures
+
+
+@dataclass(frozen=True)
+class Selection:
+    """The checkpoint a metric family is tested with; `note` says so when it is not the family's own best."""
+    family: str
+    checkpoint: Path
+    note: str = ""
+
+
+class _Tested:
+    """Finished once its `test_dir` holds a test_metrics.json."""
+
+    @property
+    def metrics_path(self) -> Path:
+        return self.test_dir / "test_metrics.json"
+
+    @property
+    def finished(self) -> bool:
+        return self.metrics_path.is_file()
+
+
+@dataclass(frozen=True)
+class TestPart(_Tested):
+    """One `test` of a run: a checkpoint, tested only on the metrics of `families` (the eval
+    `schedules` among them, and m+10 if `m_plus_10`; the one-step MSE is always computed), logging
+    to `test_dir`."""
+    checkpoint: Path
+    families: tuple[str, ...]
+    schedules: tuple[str, ...]
+    m_plus_10: bool
+    test_dir: Path
+
+
+@dataclass(frozen=True)
+class Run(_Tested):
+    model: str
+    seed: int
+    config: str
+    args: tuple[str, ...]
+    output: Path
+
+    @property
+    def fit_dir(self) -> Path:
+        return self.output / self.model / f"seed_{self.seed}"
+
+    @property
+    def test_dir(self) -> Path:
+        return self.output / self.model / f"seed_{self.seed}_test"
+
+    def _cli(self, subcommand: str, version: str) -> list[str]:
+        return [sys.executable, "-m", "ggns", subcommand, "--config", self.config, "--seed_everything", str(self.seed),
+                "--trainer.logger.init_args.save_dir", str(self.output),
+                "--trainer.logger.init_args.name", self.model,
+                "--trainer.logger.init_args.version", version, *self.args]
+
+    def fit_command(self) -> list[str]:
+        cmd = self._cli("fit", f"seed_{self.seed}")
+        last = self.fit_dir / "checkpoints" / "last.ckpt"
+        return cmd + (["--ckpt_path", str(last)] if last.is_file() else [])
+
+    def test_command(self, part: TestPart) -> list[str]:
+        version = f"seed_{self.seed}_test/{part.test_dir.name}"
+        return self._cli("test", version) + [
+            "--ckpt_path", str(part.checkpoint), "--model.init_args.eval_schedules", json.dumps(list(part.schedules)),
+            "--model.init_args.test_m_plus_10", str(part.m_plus_10).lower()]
+
+    def _eval_settings(self) -> tuple[list[str], bool]:
+        """The fit's test settings from its checkpoint's hyperparameters: (eval_schedules, test_m_plus_10)."""
+        from ..checkpoints import read_checkpoint
+
+        directory = self.fit_dir / "checkpoints"
+        for path in [directory / "last.ckpt", *sorted(directory.glob("*.ckpt"))]:
+            if path.is_file():
+                hparams = read_checkpoint(path)["hyper_parameters"]
+                return list(hparams["eval_schedules"]), bool(hparams.get("test_m_plus_10", True))
+        raise FileNotFoundError(f"{directory}: the fit of {self.model} seed {self.seed} left no checkpoint")
+
+    def checkpoints(self) -> dict[str, Selection]:
+        """The checkpoint each metric family of the run's test is tested with (`selection`): the first
+        of `selection.candidates(family)` with a best checkpoint (the newest best-<family>-*.ckpt),
+        else the single best checkpoint of a fit from before per-family selection (best-epoch=N.ckpt),
+        else last.ckpt. Families: the eval schedules' keys, m10 (if tested) and one_step."""
+        schedules, m_plus_10 = self._eval_settings()
+        directory = self.fit_dir / "checkpoints"
+
+        def newest(pattern: str, keep=lambda path: True) -> Path | None:
+            found = sorted((p for p in directory.glob(pattern) if keep(p)), key=lambda p: p.stat().st_mtime)
+            return found[-1] if found else None
+
+        legacy = newest("best-*.ckpt", lambda p: not FAMILY_CHECKPOINT.match(p.name))
+        last = directory / "last.ckpt"
+        families = [parse_schedule(s).key for s in schedules] + ([M10] if m_plus_10 else []) + [ONE_STEP]
+        out = {}
+        for family in dict.fromkeys(families):
+            found = [(c, newest(checkpoint_glob(c))) for c in candidates(family)]
+            used = next(((c, path) for c, path in found if path is not None), None)
+            if used is not None:
+                note = "" if used[0] == family or family == ONE_STEP else f"no best-{family} checkpoint: {used[0]}'s"
+                out[family] = Selection(family, used[1], note)
+            elif legacy is not None:
+                out[family] = Selection(family, legacy, "no per-family best checkpoint: the fit's single best "
+                                                        "(selected before per-family selection)")
+            elif last.is_file():
+                out[family] = Selection(family, last, "no best checkpoint (no validation ran): the last one")
+            else:
+                raise FileNotFoundError(f"{directory}: the fit of {self.model} seed {self.seed} left no checkpoint")
+        return out
+
+    def test_parts(self) -> list[TestPart]:
+        """One `TestPart` per distinct checkpoint of `checkpoints`, in `<test_dir>/<checkpoint name>`."""
+        schedules = {parse_schedule(s).key: s for s in self._eval_settings()[0]}
+        groups: dict[Path, list[str]] = {}
+        for family, selection in self.checkpoints().items():
+            groups.setdefault(selection.checkpoint, []).append(family)
+        return [TestPart(path, tuple(families), tuple(schedules[f] for f in families if f in schedules),
+                         M10 in families, self.test_dir / path.stem) for path, families in groups.items()]
+
+    def merge_tests(self) -> dict:
+        """The finished test parts merged into the run's test metrics: each metric from the part of its
+        family, plus CHECKPOINTS_KEY: {family: `checkpoint_info` + note + the metrics tested with it}."""
+        selections = self.checkpoints()
+        merged, checkpoints = {}, {}
+        for part in self.test_parts():
+            data = json.loads(part.metrics_path.read_text())
+            info = checkpoint_info(part.checkpoint)
+            for family in part.families:
+                names = [m for m in data if m != CHECKPOINT_KEY and metric_family(m) == family]
+                merged.update({m: data[m] for m in names})
+                checkpoints[family] = {**info, "note": selections[family].note, "metrics": names}
+        return {**merged, CHECKPOINTS_KEY: checkpoints}
+
+
+def load_sweep(name_or_path: str | Path, overrides: list[str] = ()) -> dict:
+    path = resolve_preset(name_or_path, "sweeps")
+    cfg = OmegaConf.merge(OmegaConf.load(path), OmegaConf.from_dotlist(list(overrides)))
+    sweep = OmegaConf.to_container(cfg, resolve=True)
+    missing = [k for k in ("output", "seeds", "models") if k not in sweep]
+    if missing:
+        raise ValueError(f"{path}: sweep lacks {missing}")
+    if not sweep["models"] or not sweep["seeds"]:
+        raise ValueError(f"{path}: a sweep needs at least one model and one seed")
+    for name, spec in sweep["models"].items():
+        if not isinstance(spec, dict) or "config" not in spec:
+            raise ValueError(f"{path}: model {name!r} needs a `config` (a Lightning config file)")
+        if not Path(spec["config"]).is_file():
+            raise FileNotFoundError(f"{path}: model {name!r}: config {spec['config']} not found")
+    unknown = [m for m in sweep.get("findings_ggns", []) if m not in sweep["models"]]
+    if unknown:
+        raise ValueError(f"{path}: findings_ggns names {unknown}, which are not models of the sweep "
+                         f"(have {list(sweep['models'])})")
+    if len(set(sweep["seeds"])) != len(sweep["seeds"]):
+        raise ValueError(f"{path}: repeated seeds {sweep['seeds']}")
+    return sweep
+
+
+def runs_of(sweep: dict) -> list[Run]:
+    """The grid in a fixed order (models as listed, then seeds): task i of a job array is runs[i]."""
+    output, common = Path(sweep["output"]), tuple(str(a) for a in sweep.get("args", []))
+    return [Run(name, int(seed), str(spec["config"]), common + tuple(str(a) for a in spec.get("args", [])), output)
+            for name, spec in sweep["models"].items() for seed in sweep["seeds"]]
+
+
+def checkpoints_markdown(checkpoints: dict[str, dict]) -> str:
+    """The "checkpoints" entry of a merged test (`Run.merge_tests`) as a markdown table."""
+    return markdown_table(["family", "tested checkpoint", "note"],
+                          [(family, describe(info), info.get("note") or "") for family, info in checkpoints.items()]) + "\n"
+
+
+class RunFailed(RuntimeError):
+    """A fit or test that a sweep (or `bench learning`) ran as a subprocess ended with an error status;
+    the message carries the subprocess's own `error: ...` line when it wrote one, and its log file."""
+
+    @classmethod
+    def of(cls, what: str, status: int, log_path: str | Path) -> RunFailed:
+        lines = Path(log_path).read_text(errors="replace").splitlines() if Path(log_path).is_file() else []
+        reason = next((line for line in reversed(lines) if line.startswith("error: ")), None)
+        return cls(f"{what} failed (exit {status})" + (f": {reason.removeprefix('error: ')}" if reason else "")
+                   + f"; see {log_path}")
+
+
+def execute(run: Run, threads: int | None = None, log=print) -> Run:
+    """fit (resuming a left-over last.ckpt) then the test parts, merged; a finished run is skipped,
+    and so is the fit once a test part has finished (the fit ended before the tests began)."""
+    if run.finished:
+        log(f"skip {run.model} seed {run.seed}: {run.metrics_path} exists")
+        return run
+    env = dict(os.environ)
+    if threads:
+        env["OMP_NUM_THREADS"] = str(threads)
+    run.fit_dir.mkdir(parents=True, exist_ok=True)
+    with open(run.output / run.model / f"seed_{run.seed}.log", "a") as out:
+        def call(step: str, command: list[str]) -> None:
+            log(f"{step} {run.model} seed {run.seed}")
+            result = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, env=env)
+            if result.returncode != 0:
+                out.flush()
+                raise RunFailed.of(f"{step} of {run.model} seed {run.seed}", result.returncode, out.name)
+
+        if not any(run.test_dir.glob("*/test_metrics.json")):
+            call("fit", run.fit_command())
+        for part in run.test_parts():
+            if part.finished:
+                log(f"skip test {run.model} seed {run.seed} {part.checkpoint.name}: {part.metrics_path} exists")
+                continue
+            call(f"test ({', '.join(part.families)} with {part.checkpoint.name})", run.test_command(part))
+            if not part.finished:
+                raise RuntimeError(f"test of {run.model} seed {run.seed} wrote no {part.metrics_path}")
+    merged = run.merge_tests()
+    metrics = {name: value for name, value in merged.items() if name != CHECKPOINTS_KEY}
+    write_text(run.metrics_path.with_suffix(".md"),
+        metrics_markdown(metrics, f"{run.model} seed {run.seed} test metrics") + "\n"
+        + checkpoints_markdown(merged[CHECKPOINTS_KEY]))
+    write_json(run.metrics_path, merged)
+    return run
+
+
+def _option(args: tuple[str, ...], name: str) -> str | None:
+    """The value of the last `name VALUE` or `name=VALUE` among CLI arguments (None if absent)."""
+    value = None
+    for i, arg in enumerate(args):
+        if arg == name and i + 1 < len(args):
+            value = args[i + 1]
+        elif arg.startswith(name + "="):
+            value = arg.split("=", 1)[1]
+    return value
+
+
+def prepare_datasets(runs: list[Run], log=print) -> list[str]:
+    """Generate the missing split files of every dataset the runs name (`--data.dataset`, `--data.data_dir`),
+    once, before runs start in parallel: otherwise each run would generate the same files at once,
+    and inside its fit's wall-clock budget. Returns the datasets checked."""
+    checked = []
+    def dataset_of(run: Run) -> str:
+        named = _option(run.args, "--data.dataset")
+        if named is None:  # the Lightning config's, else the data module's default
+            named = (OmegaConf.load(run.config).get("data") or {}).get("dataset")
+        return named or inspect.signature(SimulationDataModule).parameters["dataset"].default
+
+    for dataset, data_dir in dict.fromkeys((dataset_of(r), _option(r.args, "--data.data_dir")) for r in runs):
+        module = SimulationDataModule(dataset=dataset, data_dir=data_dir)
+        missing = [s for s in SPLITS if not module.path(s).exists()]
+        if missing:
+            log(f"generate {dataset} {missing} into {module.data_dir}")
+            module.prepare_data()
+        checked.append(dataset)
+    return checked
+
+
+def run_sweep(sweep: dict, task: int | None = None, log=print) -> list[Run]:
+    """All runs (`parallel` at once, after `prepare_datasets`) or only job-array task `task`. Returns the
+    runs executed."""
+    runs = runs_of(sweep)
+    if task is not None:
+        if not 0 <= task < len(runs):
+            raise IndexError(f"task {task} outside the sweep's {len(runs)} runs")
+        return [execute(runs[task], log=log)]
+    prepare_datasets([r for r in runs if not r.finished], log)
+    parallel = max(1, int(sweep.get("parallel", 1)))
+    threads = max(1, (os.cpu_count() or 1) // parallel)
+    with ThreadPoolExecutor(parallel) as pool:
+        return list(pool.map(lambda r: execute(r, threads, log), runs))
+
+
+def slurm_script(sweep: dict, sweep_file: str | Path, partition: str | None = None, time: str = "24:00:00",
+                 gpus: int = 1, cpus: int = 8) -> str:
+    """A SLURM job-array script with one task per run of the sweep."""
+    count = len(runs_of(sweep))
+    lines = ["#!/bin/bash", "#SBATCH --job-name=ggns-sweep", f"#SBATCH --array=0-{count - 1}",
+             f"#SBATCH --time={time}", f"#SBATCH --cpus-per-task={cpus}", "#SBATCH --ntasks=1",
+             f"#SBATCH --output={Path(sweep['output']) / 'slurm-%A_%a.out'}",
+             "#SBATCH --signal=SIGUSR1@90  # Lightning's SLURM support: checkpoint and requeue before the time limit"]
+    if gpus:
+        lines.append(f"#SBATCH --gres=gpu:{gpus}")
+    if partition:
+        lines.append(f"#SBATCH --partition={partition}")
+    lines += ["", "# one run (model x seed) per array task; finished runs are skipped, so resubmitting resumes",
+              f"srun .venv/bin/python -m ggns sweep --config {sweep_file} --task $SLURM_ARRAY_TASK_ID", ""]
+    return "\n".join(lines)
+
+
+def _run_result(run: Run) -> RunResult:
+    """A finished run's test metrics, with its generated-mesh baseline metrics when computed."""
+    result = load_run(run.metrics_path, run.model, run.seed)
+    extra = run.test_dir / GENERATED_MESH_FILE
+    if extra.is_file():
+        result.metrics.update(load_run(extra, run.model, run.seed).metrics)
+    return result
+
+
+# summary sections: (title, metric-name prefixes), in this order; other metrics go last
+SECTIONS = (("Full-rollout MSE (point cloud every k steps)", ("rollout_mse_",)),
+            ("One-step and m+10-step MSE", ("one_step_mse", "m10_mse")),
+            ("Rollout IoU (true initial mesh)", ("rollout_iou_",)),
+            ("Rollout IoU from a mesh generated from the first point cloud", ("generated_mesh_iou_",)))
+
+
+def _sections(table) -> list[str]:
+    metrics = list(dict.fromkeys(m for per_metric in table.values() for m in per_metric))
+    lines, used = [], set()
+    for title, prefixes in SECTIONS + (("Other metrics", None),):
+        chosen = [m for m in metrics if m not in used and (prefixes is None or m.startswith(prefixes))]
+        rows = {model: per_metric for model, per_metric in table.items() if any(m in per_metric for m in chosen)}
+        if chosen and rows:
+            used.update(chosen)
+            lines += [f"## {title}", "", to_markdown(rows, chosen)]
+    return lines
+
+
+def _steps_logged(scalars: dict) -> int | None:
+    """The largest TensorBoard step of any scalar of a fit (`curves.read_scalars` of its event files;
+    its training length, to within `log_every_n_steps`; validation is logged at the step it ran), or None."""
+    # read_scalars counts optimizer steps completed (TensorBoard step + 1)
+    return int(max(steps.max() for steps, _, _ in scalars.values())) - 1 if scalars else None
+
+
+def _training_markdown(runs: list[Run], results: list[RunResult], curves: list[dict]) -> str:
+    """Per run and metric family: the tested checkpoint (its step / epoch, what it was selected on,
+    any fallback) and the largest step the fit logged (`curves`: each run's `read_scalars`). Runs
+    tested before per-family selection recorded no checkpoints; theirs are found as they were chosen
+    then (`Run.checkpoints`)."""
+    rows = []
+    for run, result, scalars in zip(runs, results, curves):
+        logged = _steps_logged(scalars)
+        logged = "-" if logged is None else str(logged)
+        checkpoints = result.checkpoints
+        if not checkpoints:
+            try:
+                checkpoints = {family: {**checkpoint_info(sel.checkpoint), "note": "tested before per-family "
+                                        "selection (one checkpoint for every family)"}
+                               for family, sel in run.checkpoints().items()}
+            except FileNotFoundError:  # checkpoints removed after testing
+                rows.append((run.model, run.seed, "-", "(removed)", "-", "-", "-", logged))
+                continue
+        for family, info in checkpoints.items():
+            selected = info.get("selected_on") or "-"
+            if info.get("score") is not None:
+                selected += f" = {info['score']:.4g}"
+            rows.append((run.model, run.seed, family, info["name"], f"{info['global_step']} / {info['epoch']}", selected,
+                         info.get("note") or "", logged))
+    return markdown_table(["model", "seed", "family", "tested checkpoint", "its step / epoch", "selected on", "note",
+                           "largest logged step of the fit"], rows) + "\n"
+
+
+def _learning_markdown(runs: list[Run], scalars: list[dict], output: Path) -> list[str]:
+    """The learning-curve table of every run (`curves.variant_row` of its `read_scalars`, in
+    `scalars`) and the curves against optimizer steps (learning_curves.png)."""
+    curves = {f"{run.model} seed {run.seed}": run_scalars for run, run_scalars in zip(runs, scalars)}
+    rows = [variant_row(name, [], scalars) for name, scalars in curves.items()]
+    groups = {f"{run.model} seed {run.seed}": (run.model, i) for run in runs
+              for i, seed in enumerate(sorted({r.seed for r in runs})) if seed == run.seed}
+    figure = plot_curves(curves, output / "learning_curves.png", "steps", title="run", groups=groups)
+    return ["## Learning curves of each run", "",
+            "Read from each fit's TensorBoard events: optimizer steps and training seconds (wall seconds "
+            "since the first event where a fit logged no `time/train_seconds`, validation included), the "
+            "validation metrics at the last validation / the best one, the slope of log10 rollout (or m+10) MSE per "
+            "1000 steps over the second half of the validations (negative: still falling), and the training "
+            f"loss of graphs with / without a point cloud over the last {LATE_STEPS} steps.", "",
+            markdown_rows(rows, label="run", change=False), f"![{figure.stem}]({figure.name})", ""]
+
+
+def summarize(sweep: dict, log=print) -> Path:
+    """Aggregate the finished runs (and the baselines computed by `run_baselines`) into
+    <output>/summary.md and summary.csv (mean +- std over seeds; the normalized benefit of
+    point clouds when the sweep has `ggns` and `mgn`) plus figures."""
+    finished = [r for r in runs_of(sweep) if r.finished]
+    if not finished:
+        raise FileNotFoundError(f"{sweep['output']}: no finished run to aggregate")
+    output = Path(sweep["output"])
+    results = [_run_result(r) for r in finished]
+    scalars = [read_scalars(r.fit_dir) if r.fit_dir.is_dir() else {} for r in finished]  # each fit's events, read once
+    for row in BASELINE_ROWS:
+        path = output / row / "test_metrics.json"
+        if path.is_file():
+            results.append(load_run(path, row, 0))
+    table = aggregate(results)
+    to_csv(table, output / "summary.csv")
+    lines = ["# Sweep summary", "", f"{len(finished)} of {len(runs_of(sweep))} runs finished; mean ± std over seeds "
+             "(a single value where there is one seed or a deterministic baseline).", ""] + _sections(table)
+    if "ggns" in table and "mgn" in table:
+        try:
+            benefit = normalized_benefit(table)
+            lines += ["## Normalized benefit of point clouds (1 at k = 1, 0 at MGN)", "",
+                      markdown_table(["k", *benefit], [["benefit", *(f"{v:.3f}" for v in benefit.values())]])]
+        except ValueError as error:
+            lines += ["", f"Normalized benefit not computed: {error}"]
+    lines += ["", "## The paper's findings on this sweep", "", findings_markdown(check_findings(table))]
+    lines += ["## The project's targets on this sweep", "",
+              "Every model's one-step MSE against predicting no motion (the `static` row), GGNS's rollout "
+              "MSE over the point-cloud schedules, GGNS k=1 against MGN (ggns.experiments.findings).", "",
+              findings_markdown(check_targets(table), head="target")]
+    for model in sweep.get("findings_ggns", []):  # variants of GGNS, each judged in GGNS's place
+        if model in table:
+            stand_in = as_ggns(table, model)
+            lines += [f"## The paper's findings and the project's targets with `{model}` as GGNS", "",
+                      findings_markdown(check_findings(stand_in)),
+                      findings_markdown(check_targets(stand_in), head="target")]
+    lines += ["## Training of each run and the checkpoint each metric family was tested with", "",
+              _training_markdown(finished, results[:len(finished)], scalars)]
+    lines += _learning_markdown(finished, scalars, output)
+    lines += [f"![{figure.stem}]({figure.name})" for figure in write_figures(table, output)]
+    path = output / "summary.md"
+    write_text(path, "\n".join(lines) + "\n")
+    log(f"wrote {path} and {output / 'summary.csv'}")
+    return path
+
+
+# ---- the baselines -----------------------------------------------------------------------------
+def _test_trajectories(spec: dict):
+    module = SimulationDataModule(spec.get("dataset", "plate_small"), data_dir=spec.get("data_dir"),
+                                  max_eval_trajectories=spec.get("max_trajectories"), generate_missing=False)
+    return module.trajectories("test")
+
+
+def baseline_spec(sweep: dict) -> dict:
+    """The sweep's `baselines` section, checked ({} when absent)."""
+    spec = sweep.get("baselines") or {}
+    unknown = set(spec) - {"dataset", "data_dir", "max_trajectories", "alpha_shapes", "static", "initial_mesh"}
+    if unknown:
+        raise ValueError(f"sweep baselines: unknown keys {sorted(unknown)}")
+    models = spec.get("initial_mesh") or []
+    if isinstance(models, str):
+        models = [models]
+    missing = [m for m in models if m not in sweep["models"]]
+    if missing:
+        raise ValueError(f"sweep baselines: initial_mesh names models {missing} that the sweep does not have "
+                         f"({sorted(sweep['models'])})")
+    return {**spec, "initial_mesh": list(models)}
+
+
+def run_baselines(sweep: dict, log=print) -> list[Path]:
+    """Compute the missing baseline results of the sweep (see the module docstring): Alpha Shapes
+    and the static reference once, and the generated-mesh rollouts for every finished run of the `initial_mesh` models.
+    Returns the files written."""
+    spec = baseline_spec(sweep)
+    written: list[Path] = []
+    trajectories = None
+    for row, compute in ((ALPHA_SHAPES, alpha_shapes_metrics), (STATIC, static_metrics)):
+        path = Path(sweep["output"]) / row / "test_metrics.json"
+        if spec.get(row) and not path.is_file():
+            trajectories = trajectories if trajectories is not None else _test_trajectories(spec)
+            log(f"baseline {row} on {len(trajectories)} test trajectories")
+            write_json(path, compute(trajectories))
+            written.append(path)
+    for run in runs_of(sweep):
+        path = run.test_dir / GENERATED_MESH_FILE
+        if run.model not in spec["initial_mesh"] or not run.finished or path.is_file():
+            continue
+        trajectories = trajectories if trajectories is not None else _test_trajectories(spec)
+        log(f"baseline initial mesh generation: {run.model} seed {run.seed}")
+        metrics = {}
+        for part in run.test_parts():  # each schedule with the checkpoint selected on its family
+            if part.schedules:
+                model = load_simulator(part.checkpoint, map_location="cpu")
+                metrics.update(generated_mesh_metrics(model, trajectories, part.schedules))
+        write_json(path, metrics)
+        written.append(path)
+    return written

@@ -1,0 +1,1 @@
+"""Graphs: the system state of one step (mesh, collider, optional point cloud) as HeteroData."""

@@ -7,6 +7,7 @@ pretrained simulators."""
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -27,8 +28,13 @@ def _run(command: list[str], cwd: Path, env: dict | None = None, timeout: int = 
 @pytest.fixture(scope="module")
 def fresh_env(tmp_path_factory) -> Path:
     work = tmp_path_factory.mktemp("install")
+    source = work / "source"  # what the wheel is built from, copied so that the build leaves the checkout as it was
+    source.mkdir()
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
+        shutil.copy(ROOT / name, source / name)
+    shutil.copytree(ROOT / "src", source / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
     _run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(work / "dist"),
-          str(ROOT)], cwd=work)
+          str(source)], cwd=work)
     (wheel,) = (work / "dist").glob("ggns-*.whl")
     venv = work / "venv"
     _run([sys.executable, "-m", "venv", "--without-pip", str(venv)], cwd=work)

@@ -1,1 +1,0 @@
-"""Graphs: the system state of one step (mesh, collider, optional point cloud) as HeteroData."""

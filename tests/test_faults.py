@@ -296,8 +296,9 @@ def _sweep_file(tmp_path: Path, data: Path) -> Path:
 
     tiny = ["--data.dataset", str(data / TINY12), "--data.data_dir", str(data), "--data.generate_missing", "false",
             "--data.batch_size", "8", "--model.init_args.latent", "16", "--model.init_args.blocks", "2",
-            "--trainer.max_epochs", "3", "--trainer.limit_train_batches", "2", "--trainer.limit_val_batches", "1",
-            "--trainer.check_val_every_n_epoch", "1", "--trainer.enable_progress_bar", "false",
+            "--trainer.max_epochs", "2", "--trainer.limit_train_batches", "2", "--trainer.limit_val_batches", "1",
+            "--trainer.check_val_every_n_epoch", "2", "--data.max_eval_trajectories", "2",
+            "--trainer.enable_progress_bar", "false",
             "--trainer.enable_model_summary", "false",
             "--model.init_args.test_m_plus_10", "false"]  # one test part (never), one process fewer per test
     sweep = {"output": str(tmp_path / "sweep"), "seeds": [0], "parallel": 1, "args": tiny,
@@ -324,7 +325,7 @@ def _sweep(path: Path, kill_when=None) -> int:
 
 
 def test_a_sweep_killed_mid_fit_and_mid_test_finishes_with_the_uninterrupted_metrics(cli_data, tmp_path):
-    """Kill points (events, not times): the fit's first last.ckpt (end of epoch 0 of 3), then the first
+    """Kill points (events, not times): the fit's first last.ckpt (end of epoch 0 of 2), then the first
     test part's output directory. Each rerun of the same command resumes: the fit from last.ckpt, the
     tests from the parts that finished; the merged test metrics equal an uninterrupted sweep's."""
     whole = _sweep_file(tmp_path / "whole", cli_data)
@@ -335,11 +336,13 @@ def test_a_sweep_killed_mid_fit_and_mid_test_finishes_with_the_uninterrupted_met
     run = tmp_path / "killed" / "sweep" / "mgn"
     last = run / "seed_0" / "checkpoints" / "last.ckpt"
     assert _sweep(path, kill_when=last.is_file) == -signal.SIGKILL
-    assert torch.load(last, weights_only=True)["global_step"] < 6  # killed before the fit's end
+    assert torch.load(last, weights_only=True)["global_step"] < 4  # killed before the fit's end
     tests = run / "seed_0_test"
     assert _sweep(path, kill_when=lambda: tests.is_dir() and any(tests.iterdir())) == -signal.SIGKILL
     assert not (tests / "test_metrics.json").exists()
     assert _sweep(path) == 0
+    # the fit ran twice (killed, resumed); the rerun after the kill in the tests did not start it again
+    assert (run / "seed_0" / "fit_ended").is_file() and len(list((run / "seed_0").glob("events.out.*"))) == 2
     metrics = json.loads((tests / "test_metrics.json").read_text())
     checkpoints, expected_checkpoints = metrics.pop("checkpoints"), expected.pop("checkpoints")
     assert {f: c["name"] for f, c in checkpoints.items()} == {f: c["name"] for f, c in expected_checkpoints.items()}

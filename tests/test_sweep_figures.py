@@ -42,10 +42,11 @@ def assert_png(path):
 @pytest.mark.parametrize("std", [0.1, math.nan])
 def test_each_figure_writes_png(tmp_path, plot, std):
     table = make_table(std=std, seeds=3 if std == std else 1)
+    before = plt.get_fignums()  # figures another test in this process left open are not this one's
     path = plot(table, tmp_path / "sub" / "fig.png")
     assert path == tmp_path / "sub" / "fig.png"
     assert_png(path)
-    assert plt.get_fignums() == []  # closed
+    assert plt.get_fignums() == before  # closed
 
 
 def test_write_figures_full_set(tmp_path):
@@ -117,11 +118,12 @@ def test_schedule_bars_heights_and_error_bars():
 
 
 def test_missing_metrics_raise_in_single_figures(tmp_path):
+    before = plt.get_fignums()
     with pytest.raises(ValueError):
         iou_bars(make_table(with_iou=False), tmp_path / "iou.png")
     with pytest.raises(ValueError):
         benefit_curve(make_table(with_mgn=False), tmp_path / "b.png")
-    assert plt.get_fignums() == []
+    assert plt.get_fignums() == before
 
 
 def test_summarize_writes_and_links_figures(tmp_path):

@@ -41,7 +41,7 @@ from .generate import generate, read_shards, shard_files, split_path
 from .schema import read_trajectories
 from ..trajectory import Trajectory
 
-SPLITS = ("train", "val", "test")
+from . import DEFAULT_DATASET, SPLITS  # noqa: F401 (SPLITS: importable from here as before)
 
 
 class WindowDataset(Dataset):
@@ -131,7 +131,7 @@ class SimulationDataModule(pl.LightningDataModule):
             PL_GLOBAL_SEED), else 0.
     """
 
-    def __init__(self, dataset: str = "plate_small", data_dir: str | None = None, batch_size: int = 32,
+    def __init__(self, dataset: str = DEFAULT_DATASET, data_dir: str | None = None, batch_size: int = 32,
                  train_window: int | None = None, eval_batch_size: int = 32, max_eval_trajectories: int | None = None,
                  num_workers: int = 0, generate_missing: bool = True, seed: int | None = None):
         super().__init__()

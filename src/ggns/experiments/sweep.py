@@ -45,7 +45,6 @@ Existing result files are kept (an interrupted sweep resumes); delete them to re
 """
 from __future__ import annotations
 
-import inspect
 import json
 import os
 import subprocess
@@ -56,21 +55,22 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from ..baselines.scores import (ALPHA_SHAPES, GENERATED_MESH_FILE, STATIC, alpha_shapes_metrics,
-                               generated_mesh_metrics, static_metrics)
-from ..baselines.scores import ROWS as BASELINE_ROWS
 from ..reports import markdown_table, write_json, write_text
-from ..config import resolve_preset
-from ..data.module import SPLITS, SimulationDataModule
-from ..evaluation.evaluate import metrics_markdown
+from ..config import load_config, resolve_preset
+from ..data import DEFAULT_DATASET, SPLITS
 from ..evaluation.schedules import parse_schedule
 from ..evaluation.selection import (CHECKPOINT_KEY, CHECKPOINTS_KEY, FAMILY_CHECKPOINT, M10, ONE_STEP, candidates,
                                     checkpoint_glob, checkpoint_info, describe, metric_family)
-from ..models.simulators import load_simulator
 from .aggregate import RunResult, aggregate, load_run, normalized_benefit, to_csv, to_markdown
 from .curves import LATE_STEPS, markdown_rows, plot_curves, read_scalars, variant_row
 from .findings import as_ggns, check_findings, check_targets, findings_markdown
-from .figures import write_figures
+
+# The orchestration (which runs and test parts, their processes, merging) imports neither Lightning nor the
+# models: a sweep process starts in about a second, and each fit and test it runs imports them itself. The
+# data module, the models, the baselines and the figures are imported where they are used.
+
+
+FIT_ENDED = "fit_ended"  # in a run's fit directory once its fit process returned 0
 
 
 @dataclass(frozen=True)
@@ -254,7 +254,9 @@ class RunFailed(RuntimeError):
 
 def execute(run: Run, threads: int | None = None, log=print) -> Run:
     """fit (resuming a left-over last.ckpt) then the test parts, merged; a finished run is skipped,
-    and so is the fit once a test part has finished (the fit ended before the tests began)."""
+    and so is the fit once it has ended (`FIT_ENDED`, written when its process returned 0) or a test
+    part has finished (the fit ended before the tests began): a sweep killed during its tests does not
+    start the fit's process again."""
     if run.finished:
         log(f"skip {run.model} seed {run.seed}: {run.metrics_path} exists")
         return run
@@ -270,8 +272,10 @@ def execute(run: Run, threads: int | None = None, log=print) -> Run:
                 out.flush()
                 raise RunFailed.of(f"{step} of {run.model} seed {run.seed}", result.returncode, out.name)
 
-        if not any(run.test_dir.glob("*/test_metrics.json")):
+        ended = run.fit_dir / FIT_ENDED
+        if not ended.is_file() and not any(run.test_dir.glob("*/test_metrics.json")):
             call("fit", run.fit_command())
+            ended.write_text("the fit's process returned 0; a rerun of the sweep does not fit again\n")
         for part in run.test_parts():
             if part.finished:
                 log(f"skip test {run.model} seed {run.seed} {part.checkpoint.name}: {part.metrics_path} exists")
@@ -279,6 +283,8 @@ def execute(run: Run, threads: int | None = None, log=print) -> Run:
             call(f"test ({', '.join(part.families)} with {part.checkpoint.name})", run.test_command(part))
             if not part.finished:
                 raise RuntimeError(f"test of {run.model} seed {run.seed} wrote no {part.metrics_path}")
+    from ..evaluation.evaluate import metrics_markdown
+
     merged = run.merge_tests()
     metrics = {name: value for name, value in merged.items() if name != CHECKPOINTS_KEY}
     write_text(run.metrics_path.with_suffix(".md"),
@@ -308,12 +314,15 @@ def prepare_datasets(runs: list[Run], log=print) -> list[str]:
         named = _option(run.args, "--data.dataset")
         if named is None:  # the Lightning config's, else the data module's default
             named = (OmegaConf.load(run.config).get("data") or {}).get("dataset")
-        return named or inspect.signature(SimulationDataModule).parameters["dataset"].default
+        return named or DEFAULT_DATASET
 
     for dataset, data_dir in dict.fromkeys((dataset_of(r), _option(r.args, "--data.data_dir")) for r in runs):
-        module = SimulationDataModule(dataset=dataset, data_dir=data_dir)
-        missing = [s for s in SPLITS if not module.path(s).exists()]
+        directory = Path(data_dir if data_dir is not None else load_config(dataset)["output"])
+        missing = [s for s in SPLITS if not (directory / f"{s}.h5").exists()]  # as SimulationDataModule.path
         if missing:
+            from ..data.module import SimulationDataModule
+
+            module = SimulationDataModule(dataset=dataset, data_dir=data_dir)
             log(f"generate {dataset} {missing} into {module.data_dir}")
             module.prepare_data()
         checked.append(dataset)
@@ -354,6 +363,8 @@ def slurm_script(sweep: dict, sweep_file: str | Path, partition: str | None = No
 
 def _run_result(run: Run) -> RunResult:
     """A finished run's test metrics, with its generated-mesh baseline metrics when computed."""
+    from ..baselines.scores import GENERATED_MESH_FILE
+
     result = load_run(run.metrics_path, run.model, run.seed)
     extra = run.test_dir / GENERATED_MESH_FILE
     if extra.is_file():
@@ -436,6 +447,9 @@ def summarize(sweep: dict, log=print) -> Path:
     """Aggregate the finished runs (and the baselines computed by `run_baselines`) into
     <output>/summary.md and summary.csv (mean +- std over seeds; the normalized benefit of
     point clouds when the sweep has `ggns` and `mgn`) plus figures."""
+    from ..baselines.scores import ROWS as BASELINE_ROWS
+    from .figures import write_figures
+
     finished = [r for r in runs_of(sweep) if r.finished]
     if not finished:
         raise FileNotFoundError(f"{sweep['output']}: no finished run to aggregate")
@@ -480,7 +494,9 @@ def summarize(sweep: dict, log=print) -> Path:
 
 # ---- the baselines -----------------------------------------------------------------------------
 def _test_trajectories(spec: dict):
-    module = SimulationDataModule(spec.get("dataset", "plate_small"), data_dir=spec.get("data_dir"),
+    from ..data.module import SimulationDataModule
+
+    module = SimulationDataModule(spec.get("dataset", DEFAULT_DATASET), data_dir=spec.get("data_dir"),
                                   max_eval_trajectories=spec.get("max_trajectories"), generate_missing=False)
     return module.trajectories("test")
 
@@ -505,6 +521,10 @@ def run_baselines(sweep: dict, log=print) -> list[Path]:
     """Compute the missing baseline results of the sweep (see the module docstring): Alpha Shapes
     and the static reference once, and the generated-mesh rollouts for every finished run of the `initial_mesh` models.
     Returns the files written."""
+    from ..baselines.scores import (ALPHA_SHAPES, GENERATED_MESH_FILE, STATIC, alpha_shapes_metrics,
+                                   generated_mesh_metrics, static_metrics)
+    from ..models.simulators import load_simulator
+
     spec = baseline_spec(sweep)
     written: list[Path] = []
     trajectories = None

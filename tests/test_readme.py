@@ -52,3 +52,9 @@ def test_each_readme_table_is_generated_from_committed_summaries(args, table, so
     finally:
         os.chdir(cwd)
     assert f"{table}\n\n{source}" == expected
+
+
+def test_every_relative_link_of_the_readme_exists():
+    text = README.read_text(encoding="utf-8")
+    targets = {t.split("#")[0] for t in re.findall(r"\]\(([^)]+)\)", text) if not t.startswith(("http", "#"))}
+    assert targets and not [t for t in sorted(targets) if not (ROOT / t).exists()]

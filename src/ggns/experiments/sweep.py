@@ -66,8 +66,8 @@ from .curves import LATE_STEPS, markdown_rows, plot_curves, read_scalars, varian
 from .findings import as_ggns, check_findings, check_targets, findings_markdown
 
 # The orchestration (which runs and test parts, their processes, merging) imports neither Lightning nor the
-# models: a sweep process starts in about a second, and each fit and test it runs imports them itself. The
-# data module, the models, the baselines and the figures are imported where they are used.
+# models (each fit and test it starts imports them itself), so a sweep process starts in the time torch takes
+# to import. The data module, the models, the baselines and the figures are imported where they are used.
 
 
 FIT_ENDED = "fit_ended"  # in a run's fit directory once its fit process returned 0

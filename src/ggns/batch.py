@@ -24,6 +24,21 @@ def directed_mesh_edges(edges: Tensor) -> Tensor:
 
 @dataclass
 class TrajectoryBatch:
+    """B trajectories of T states concatenated PyG-style on one device: node, cell, collider and point
+    arrays of all trajectories stacked, with `*_batch` vectors (and host offsets) saying whose each row is.
+
+    Attributes:
+        rest: [sumN, d] mesh rest positions.
+        edges: [2, sumE] directed mesh edges (both directions), global node indices.
+        fixed: [sumN] bool, the Dirichlet (fixed) nodes.
+        mesh_batch: [sumN] long, the trajectory of each node.
+        positions: [T, sumN, d] true mesh positions (the initial state repeated where there is no ground truth).
+        collider: [T, sumK, d] collider vertices, None when no trajectory has any.
+        points: T tensors [P_t, d], the point clouds of all trajectories at step t.
+        material: [B] Poisson's ratios.
+        cells: [sumC, d+1] long, triangles or tetrahedra, global node indices.
+    """
+
     rest: Tensor  # [sumN, d] mesh rest positions
     edges: Tensor  # [2, sumE] directed mesh edges (both directions), global indices
     fixed: Tensor  # [sumN] bool, Dirichlet nodes
@@ -117,8 +132,20 @@ class TrajectoryBatch:
         return pinned
 
     @classmethod
-    def from_trajectories(cls, trajs: list[Trajectory], device=None, dtype=torch.float32) -> TrajectoryBatch:
-        """Concatenate trajectories with equal T and d (ValueError otherwise) on `device`."""
+    def from_trajectories(cls, trajs: list[Trajectory], device: torch.device | str | None = None,
+                          dtype: torch.dtype = torch.float32) -> TrajectoryBatch:
+        """Concatenate trajectories with equal T and d (ValueError otherwise) on `device`.
+
+        Args:
+            trajs: B trajectories (`SplitReader` items, `trajectory_from_arrays`), all with T states in
+                d dimensions; their node counts may differ.
+            device: where the tensors go (default: the CPU).
+            dtype: the floating-point type of positions and features.
+
+        Returns:
+            the batch: positions [T, sum_b N_b, d] with `mesh_batch` [sum_b N_b] naming each node's
+            trajectory, colliders and point clouds concatenated likewise.
+        """
         if not trajs:
             raise ValueError("TrajectoryBatch needs at least one trajectory")
         shapes = [(t.num_steps, t.dim) for t in trajs]

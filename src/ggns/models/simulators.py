@@ -403,9 +403,23 @@ class GraphSimulator(pl.LightningModule):
         self.fit_normalizers(datamodule.train_dataloader())
 
     # ---- evaluation -------------------------------------------------------------------------
-    def evaluate(self, batch: TrajectoryBatch, schedules=None, **kwargs) -> dict[str, Tensor]:
-        """Per-trajectory paper metrics of this model on `batch` (`evaluation.evaluate_batch`)."""
-        schedules = self.schedules if schedules is None else schedules
+    def evaluate(self, batch: TrajectoryBatch, schedules: list[Schedule | str] | None = None,
+                 **kwargs: Any) -> dict[str, Tensor]:
+        """Per-trajectory paper metrics of this model on `batch` (`evaluation.evaluate_batch`).
+
+        Args:
+            batch: B trajectories of T states each (`TrajectoryBatch.from_trajectories`).
+            schedules: point-cloud schedules of the full rollouts ("every:K", "first:M", "never" or
+                `Schedule` objects); default: the model's `eval_schedules`.
+            **kwargs: `evaluate_batch`'s options (`m_plus_10`, `iou`, ...).
+
+        Returns:
+            metric name (`one_step_mse`, `rollout_mse_k1`, `rollout_iou_k1`, ..., `rollout_mse_never`,
+            `m10_mse` when computed) -> a [B] tensor, one value per trajectory (MSE in squared
+            task-space units).
+        """
+        schedules = self.schedules if schedules is None else [parse_schedule(s) if isinstance(s, str) else s
+                                                              for s in schedules]
         one_step = effective_schedule(EveryK(1), self.uses_points)
         with torch.no_grad():
             return evaluate_batch(self.rollout_step(), batch, self.connectivity, schedules,
@@ -413,7 +427,16 @@ class GraphSimulator(pl.LightningModule):
                                   one_step_schedule=one_step, **kwargs)
 
     def rollout(self, batch: TrajectoryBatch, schedule: Schedule | str) -> Tensor:
-        """Positions [T, sumN, d] of a rollout of `batch` from S_0 under `schedule`."""
+        """A rollout of every trajectory of `batch` from its first state S_0.
+
+        Args:
+            batch: B trajectories of T states each, N_b mesh nodes in trajectory b.
+            schedule: when the model sees the point cloud: "every:K", "first:M", "never" or a `Schedule`.
+
+        Returns:
+            the predicted mesh positions, [T, sum_b N_b, d] (d = 2 or 3), trajectories concatenated
+            along the node axis as in `batch.mesh_batch`; step 0 is S_0.
+        """
         schedule = parse_schedule(schedule) if isinstance(schedule, str) else schedule
         with torch.no_grad():
             return rollout(self.rollout_step(), batch, schedule, self.connectivity, self.with_material)[0]

@@ -25,9 +25,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..checkpoints import CHECKPOINT_FORMAT, CheckpointError, sha256
 from ..data.schema import SCHEMA_VERSION, config_differences
+
+if TYPE_CHECKING:
+    import torch
 from ..models.simulators import GraphSimulator, load_simulator
 
 REGISTRY = Path(__file__).resolve().parent
@@ -77,8 +81,17 @@ def verify(name: str) -> tuple[dict, Path]:
     return entry, path
 
 
-def load(name: str, map_location="cpu") -> GraphSimulator:
-    """A shipped simulator in eval mode, verified (`verify`); its manifest is `model.manifest`."""
+def load(name: str, map_location: str | torch.device = "cpu") -> GraphSimulator:
+    """A shipped simulator in eval mode, verified (`verify`); its manifest is `model.manifest`.
+
+    Args:
+        name: "<task>/<model>", one of `names()` (e.g. "plate/ggns", "tissue/mgn_m").
+        map_location: where the weights go ("cpu", "cuda", a torch.device).
+
+    Returns:
+        the simulator (a `GraphSimulator` subclass, e.g. `GGNS`), its sha256 and class checked against
+        the manifest (`PretrainedError` otherwise).
+    """
     entry, path = verify(name)
     model = load_simulator(path, map_location=map_location)
     if type(model).__name__ != entry["class"]:
@@ -88,8 +101,17 @@ def load(name: str, map_location="cpu") -> GraphSimulator:
     return model
 
 
-def load_model(spec: str | Path, map_location="cpu") -> GraphSimulator:
-    """A simulator from a pretrained name ("plate/ggns", "pretrained:plate/ggns") or a .ckpt path."""
+def load_model(spec: str | Path, map_location: str | torch.device = "cpu") -> GraphSimulator:
+    """A simulator from a pretrained name ("plate/ggns", "pretrained:plate/ggns") or a .ckpt path.
+
+    Args:
+        spec: a shipped simulator's name, with or without the "pretrained:" prefix, or the path of a
+            checkpoint this library wrote (read as data only, `ggns.checkpoints`).
+        map_location: where the weights go.
+
+    Returns:
+        the simulator in eval mode.
+    """
     text = str(spec)
     if text.startswith(PREFIX) or (not Path(text).exists() and text.count("/") == 1 and not text.endswith(".ckpt")):
         return load(text, map_location)

@@ -26,7 +26,7 @@ import os
 import sys
 
 # Large CPU tensors in transparent huge pages (PyTorch's own switch, read at its first allocation, so set
-# before torch is imported): a paper-size training step then takes a tenth of the page faults (docs/speed.md)
+# before torch is imported): a paper-size training step then takes far fewer page faults (docs/speed.md)
 os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
 
 from .command_line import build_parser, call  # noqa: E402

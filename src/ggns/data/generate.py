@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from . import split_path  # noqa: F401 (importable from here as before)
 from ..scenes import SCENES
 from ..sensors.camera import DepthSensor, SensorConfig
 from .resume import SplitParts, remove_stale_partials
@@ -88,10 +89,6 @@ def regenerate(config: dict, combination: int, seed: int):
         return _make((combination, seed))
     finally:
         torch.set_num_threads(threads)
-
-
-def split_path(output: str | Path, split: str) -> Path:
-    return Path(output) / f"{split}.h5"
 
 
 def trajectory_jobs(config: dict, split: str, count: int) -> list[tuple[int, int]]:

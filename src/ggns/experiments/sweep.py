@@ -57,7 +57,7 @@ from omegaconf import OmegaConf
 
 from ..reports import markdown_table, write_json, write_text
 from ..config import load_config, resolve_preset
-from ..data import DEFAULT_DATASET, SPLITS
+from ..data import DEFAULT_DATASET, SPLITS, split_path
 from ..evaluation.schedules import parse_schedule
 from ..evaluation.selection import (CHECKPOINT_KEY, CHECKPOINTS_KEY, FAMILY_CHECKPOINT, M10, ONE_STEP, candidates,
                                     checkpoint_glob, checkpoint_info, describe, metric_family)
@@ -318,7 +318,7 @@ def prepare_datasets(runs: list[Run], log=print) -> list[str]:
 
     for dataset, data_dir in dict.fromkeys((dataset_of(r), _option(r.args, "--data.data_dir")) for r in runs):
         directory = Path(data_dir if data_dir is not None else load_config(dataset)["output"])
-        missing = [s for s in SPLITS if not (directory / f"{s}.h5").exists()]  # as SimulationDataModule.path
+        missing = [s for s in SPLITS if not split_path(directory, s).exists()]
         if missing:
             from ..data.module import SimulationDataModule
 

@@ -232,7 +232,7 @@ def test_cli_mgn_fit_and_test(cli_data, tmp_path, capsys):
     for config, extra, message in (("ggns", [], "holds a ggns.models.simulators.MGN, but the config asks for "
                                                  "ggns.models.simulators.GGNS"),
                                    ("mgn", ["--model.init_args.latent", "32"], "latent: given 32, checkpoint 16"),
-                                   ("mgn", ["--model.init_args.noise_std=0.5"], "noise_std: given 0.5, checkpoint 0.01")):
+                                   ("mgn", ["--model.init_args.noise.std=0.5"], "noise: given")):
         with pytest.raises(SystemExit) as exit_info:
             run_cli(["test", *cli_args(config, cli_data, tmp_path, "refused", "--ckpt_path", str(best), *extra)])
         assert exit_info.value.code == 2 and message in capsys.readouterr().err
@@ -240,7 +240,59 @@ def test_cli_mgn_fit_and_test(cli_data, tmp_path, capsys):
     # evaluation settings may change at test time, and are applied
     run_cli(["test", *cli_args("mgn", cli_data, tmp_path, "no_m10", "--ckpt_path", str(best),
                                "--model.init_args.test_m_plus_10", "false")])
-    assert "m10_mse" not in json.loads((tmp_path / "mgn" / "no_m10" / "test_metrics.json").read_text())
+    no_m10 = json.loads((tmp_path / "mgn" / "no_m10" / "test_metrics.json").read_text())
+    assert "m10_mse" not in no_m10
+    # a checkpoint of before the components (flat noise_std, lr, lr_decay_rate, type_partition, as the
+    # shipped simulators are) tests through the CLI with its hyperparameters converted: the same numbers
+    checkpoint = torch.load(best, weights_only=True)
+    hparams = checkpoint["hyper_parameters"]
+    noise, schedule = hparams.pop("noise"), hparams.pop("lr_schedule")
+    hparams.update(noise_std=noise["std"], noise_field_std=noise["field_std"], lr=schedule["lr"],
+                   lr_decay_rate=schedule["decay_rate"], type_partition=None)
+    torch.save(checkpoint, tmp_path / "flat.ckpt")
+    run_cli(["test", *cli_args("mgn", cli_data, tmp_path, "flat", "--ckpt_path", str(tmp_path / "flat.ckpt"),
+                               "--model.init_args.test_m_plus_10", "false")])
+    flat = json.loads((tmp_path / "mgn" / "flat" / "test_metrics.json").read_text())
+    assert {k: v for k, v in flat.items() if k != "checkpoint"} == {k: v for k, v in no_m10.items() if k != "checkpoint"}
+    # the run's saved config is the whole merged config (its `base` cleared) and parses to the same config
+    saved = tmp_path / "mgn" / "fit" / "config.yaml"
+    assert "base: null" in saved.read_text() and "RolloutEvaluation" in saved.read_text()
+
+
+def test_configs_extend_their_base(tmp_path):
+    """`base:` in a Lightning config: the shipped model configs extend conf/trainer.yaml (its checkpoints
+    first, then their own `callbacks+:`); a config of one's own extends a file beside it or a shipped
+    config by name; a missing base or a cycle is refused naming the config."""
+    from ggns.cli import build_cli, config_bases
+
+    assert config_bases(CONF_DIR / "plate" / "ggns.yaml") == [CONF_DIR / "trainer.yaml"]
+    cli = build_cli(["--config", "plate/ggns", "--trainer.logger", "false"], run=False)
+    names = [type(c).__name__ + (f":{c.filename}" if type(c).__name__ == "ModelCheckpoint" else "")
+             for c in cli.trainer.callbacks]
+    for wanted in ("RolloutWriter", "TestReport", "ModelCheckpoint:best-never-{step}", "ModelCheckpoint:last",
+                   "RolloutEvaluation", "ModelCheckpoint:best-k1-{step}", "RandomState"):
+        assert sum(n == wanted for n in names) == 1, (wanted, names)
+    (tmp_path / "mine.yaml").write_text("base: plate/mgn\ntrainer:\n  max_epochs: 3\n")
+    (tmp_path / "two.yaml").write_text("base: mine.yaml\ndata:\n  batch_size: 4\n")
+    assert config_bases(tmp_path / "two.yaml") == [CONF_DIR / "trainer.yaml", CONF_DIR / "plate" / "mgn.yaml",
+                                                   tmp_path / "mine.yaml"]
+    cli = build_cli(["--config", str(tmp_path / "two.yaml"), "--trainer.logger", "false"], run=False)
+    assert (cli.trainer.max_epochs, cli.datamodule.batch_size, type(cli.model).__name__) == (3, 4, "MGN")
+    (tmp_path / "gone.yaml").write_text("base: nowhere.yaml\n")
+    with pytest.raises(ValueError, match="gone.yaml: its base 'nowhere.yaml' is neither"):
+        config_bases(tmp_path / "gone.yaml")
+    (tmp_path / "a.yaml").write_text("base: b.yaml\n")
+    (tmp_path / "b.yaml").write_text("base: a.yaml\n")
+    with pytest.raises(ValueError, match="cycle"):
+        config_bases(tmp_path / "a.yaml")
+
+
+def test_arguments_of_before_the_components_are_refused_with_their_new_names():
+    from ggns.cli import build_cli
+
+    with pytest.raises(ValueError, match=r"noise_std is now noise\.std; type_partition is now processor"):
+        build_cli(["--config", "plate/ggns", "--model.init_args.noise_std", "0.02",
+                   "--model.init_args.type_partition=true"], run=False)
 
 
 def test_a_run_without_logger_writes_no_config_into_its_root(cli_data, tmp_path):

@@ -69,7 +69,7 @@ def test_state_graphs_on_cuda_hold_the_cpu_edges_and_features(cls, use_points, s
 @pytest.mark.parametrize("cls", ALL_MODELS, ids=lambda c: c.__name__)
 def test_every_simulator_trains_and_rolls_out_on_cuda_as_on_cpu(cls, splits):
     torch.manual_seed(0)
-    model = make(cls, latent=32, blocks=2, noise_field_std=0.01)  # the CPU presets' smooth field too
+    model = make(cls, latent=32, blocks=2, noise=dict(field_std=0.01))  # the CPU presets' smooth field too
     windows = WindowDataset(splits["train"], model.window)
     batch = collate([windows[i] for i in range(min(8, len(windows)))])
     model.fit_normalizers([batch])

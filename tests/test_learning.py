@@ -48,9 +48,9 @@ def test_variant_row_on_hand_made_curves():
                "val/one_step_ratio": curve([100, 200, 300], [0.5, 0.2, 0.15]),
                "val/rollout_mse_never": curve([100, 200, 300], [1e-2, 1e-3, 1e-4]),
                "train/loss": curve([99, 199, 299], [1.0, 0.5, 0.4])}
-    row = variant_row("a", ["--model.init_args.noise_std", "0.005"], scalars)
+    row = variant_row("a", ["--model.init_args.noise.std", "0.005"], scalars)
     assert list(row) == list(COLUMNS)
-    assert row["change"] == "--model.init_args.noise_std 0.005" and row["steps"] == 300
+    assert row["change"] == "--model.init_args.noise.std 0.005" and row["steps"] == 300
     assert row["train_seconds"] == 60.0 and row["steps_per_second"] == 5.0
     assert (row["steps_to_ratio"], row["seconds_to_ratio"]) == (200, 40.0)
     assert (row["best_one_step_ratio"], row["last_one_step_ratio"]) == (0.15, 0.15)
@@ -81,8 +81,8 @@ def write_learning(tmp_path, data_dir) -> str:
             "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
     spec = {"output": str(tmp_path / "learning"), "minutes": 5, "val_every": 2, "seed": 0, "parallel": 2,
             "base": {"config": str(CONF_DIR / "plate" / "ggns.yaml"), "args": tiny},
-            "variants": {"paper": [], "decay": ["--model.init_args.lr_decay_rate", "0.5",
-                                                "--model.init_args.lr_decay_steps", "2"]}}
+            "variants": {"paper": [], "decay": ["--model.init_args.lr_schedule.decay_rate", "0.5",
+                                                "--model.init_args.lr_schedule.decay_steps", "2"]}}
     path = tmp_path / "learning.yaml"
     path.write_text(yaml.safe_dump(spec, sort_keys=False))
     return str(path)
@@ -107,7 +107,7 @@ def test_two_tiny_variants_end_to_end_and_resume(cli_data, tmp_path):
         assert math.isfinite(float(row["rollout_mse_never_last"]))
     text = report.read_text()
     assert "Finished: 2 of 2 variants" in text and "| paper | `(base)` | 4 |" in text
-    assert "| decay | `--model.init_args.lr_decay_rate 0.5 --model.init_args.lr_decay_steps 2` | 4 |" in text
+    assert "| decay | `--model.init_args.lr_schedule.decay_rate 0.5 --model.init_args.lr_schedule.decay_steps 2` | 4 |" in text
     # the LearningRateMonitor of the CLI logged the scheduled lr of each of the 4 steps
     steps, _, lrs = read_scalars(runs[1].fit_dir)["train/lr"]
     assert steps.tolist() == [1, 2, 3, 4]
@@ -161,7 +161,7 @@ def test_the_shipped_learning_file_parses(tmp_path):
                         run=False)
         assert cli.datamodule.hparams.dataset == "plate_small"
         if run.model == "lr_decay":
-            assert cli.model.hparams.lr_decay_rate == 0.1
+            assert cli.model.lr_schedule.decay_rate == 0.1
         if run.model == "batch_4":
             assert cli.datamodule.batch_size == 4 and cli.trainer.val_check_interval == 200
 
@@ -198,7 +198,7 @@ def test_every_variant_of_the_plate_reach_learning_files_parses(name, tmp_path):
         if "blocks_5" in run.model or "blocks_10" in run.model:
             assert model.hparams.blocks == int(run.model.rsplit("_", 1)[1])
         if run.model.endswith("field_decay"):
-            assert model.hparams.noise_field_decay_steps == 8000
+            assert model.noise.field_decay_steps == 8000
 
 
 def test_every_variant_of_the_plate_lstm_learning_file_parses(tmp_path):
@@ -229,7 +229,7 @@ def test_every_variant_of_the_plate_m10_learning_file_parses(tmp_path):
                 "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
         model = build_cli(argv, run=False).model
         assert isinstance(model, GGNSID) and model.edge_partition
-        assert model.hparams.noise_field_points_only == run.model.startswith("field_points_only")
+        assert model.noise.field_points_only == run.model.startswith("field_points_only")
         probability = float(run.model.split("points_")[-1]) if "points_0" in run.model else 0.5
         assert model.hparams.point_probability == probability
 
@@ -247,8 +247,8 @@ def test_every_variant_of_the_estimator_learning_files_parses(tmp_path):
             model = build_cli(argv, run=False).model
             assert isinstance(model, GGNSID) and model.edge_partition
             plate = preset.startswith("plate")
-            assert model.hparams.noise_field_points_only == plate
-            assert model.hparams.noise_field_decay_steps == (8000 if plate else 0)
-            assert model.hparams.noise_field_wavelength == (4.0 if plate else 2.0)
+            assert model.noise.field_points_only == plate
+            assert model.noise.field_decay_steps == (8000 if plate else 0)
+            assert model.noise.field_wavelength == (4.0 if plate else 2.0)
             noise = float(run.model.split("noise_")[1]) if "estimator_noise" in run.model else 0.0
             assert model.hparams.estimator_noise_std == noise

@@ -10,10 +10,10 @@ import pytorch_lightning as pl
 import torch
 
 from ggns.data.module import SimulationDataModule
-from ggns.models.lr_schedule import scheduled_lr
+from ggns.models.lr_schedule import LRSchedule, scheduled_lr
 from ggns.models.simulators import GGNS, MGN, load_simulator
 
-SCHEDULE = dict(lr=1e-3, lr_final=1e-4, lr_decay_rate=0.5, lr_decay_steps=2, lr_warmup_steps=2)
+SCHEDULE = dict(lr_schedule=LRSchedule(lr=1e-3, final=1e-4, decay_rate=0.5, decay_steps=2, warmup_steps=2))
 
 
 def test_formula():
@@ -25,13 +25,14 @@ def test_formula():
 
 
 @pytest.mark.parametrize("kwargs, name", [
-    (dict(lr=0.0), "lr must"), (dict(lr_final=1e-3), "lr_final"), (dict(lr_final=-1e-6), "lr_final"),
-    (dict(lr_decay_rate=0.0), "lr_decay_rate"), (dict(lr_decay_rate=1.5), "lr_decay_rate"),
-    (dict(lr_decay_steps=0), "lr_decay_steps"), (dict(lr_decay_steps=2.5), "lr_decay_steps"),
-    (dict(lr_warmup_steps=-1), "lr_warmup_steps")])
+    (dict(lr=0.0), "lr_schedule.lr must"), (dict(final=1e-3), "lr_schedule.final"),
+    (dict(final=-1e-6), "lr_schedule.final"), (dict(decay_rate=0.0), "lr_schedule.decay_rate"),
+    (dict(decay_rate=1.5), "lr_schedule.decay_rate"), (dict(decay_steps=0), "lr_schedule.decay_steps"),
+    (dict(decay_steps=2.5), "lr_schedule.decay_steps"), (dict(warmup_steps=-1), "lr_schedule.warmup_steps"),
+    (dict(decay=0.5), r"lr_schedule: unknown fields \['decay'\]")])
 def test_bad_schedule_arguments_raise_naming_the_argument(kwargs, name):
     with pytest.raises(ValueError, match=name):
-        MGN(latent=8, blocks=1, **kwargs)
+        MGN(latent=8, blocks=1, lr_schedule=kwargs)
 
 
 class LrRecorder(pl.Callback):
@@ -75,17 +76,19 @@ def test_a_real_fit_follows_the_schedule_per_optimizer_step(tiny_data_dir, tmp_p
 
 def test_checkpoints_from_before_the_schedule_load_and_resume(tiny_data_dir, tmp_path):
     """A checkpoint without the schedule's hyperparameters and without scheduler state (as written
-    before the schedule existed) loads with the constant paper lr, and a fit resumes from it."""
+    before the schedule existed, with the flat `lr` and `noise_std` of before the components) loads with
+    the constant paper lr, and a fit resumes from it."""
     torch.manual_seed(0)
     trainer, _ = tiny_fit(tiny_data_dir, tmp_path, MGN(latent=16, blocks=2, statistics_batches=1), 2)
     trainer.save_checkpoint(tmp_path / "new.ckpt")
     checkpoint = torch.load(tmp_path / "new.ckpt", weights_only=False)
-    for key in ("lr_final", "lr_decay_rate", "lr_decay_steps", "lr_warmup_steps"):
-        del checkpoint["hyper_parameters"][key]
+    hparams = checkpoint["hyper_parameters"]
+    del hparams["lr_schedule"], hparams["noise"]
+    hparams.update(lr=5e-4, noise_std=0.01)
     checkpoint["lr_schedulers"] = []
     torch.save(checkpoint, tmp_path / "old.ckpt")
     model = load_simulator(tmp_path / "old.ckpt")
-    assert (model.hparams.lr_decay_rate, model.hparams.lr_warmup_steps) == (1.0, 0)
+    assert model.lr_schedule == LRSchedule(lr=5e-4) and model.noise.std == 0.01
     trainer, recorder = tiny_fit(tiny_data_dir, tmp_path, MGN(latent=16, blocks=2), 4, tmp_path / "old.ckpt")
     assert trainer.global_step == 4 and recorder.lrs == [5e-4, 5e-4]
 

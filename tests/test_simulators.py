@@ -17,7 +17,9 @@ from ggns.evaluation.evaluate import m_plus_10_profile, pooled_over
 from ggns.evaluation.metrics import m_plus_10_pooled_mse
 from ggns.evaluation.rollout import RolloutError, m_plus_10_rollouts, rollout
 from ggns.evaluation.schedules import EveryK, FirstM, Never
-from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared, linear_decay, load_simulator
+from ggns.models.lr_schedule import LRSchedule
+from ggns.models.training_noise import TrainingNoise
+from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared, load_simulator
 from conftest import T, first_graph, make, normalizer_buffers, quiet_trainer, save_untrained
 
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -60,7 +62,7 @@ def test_ggns_takes_graphs_with_and_without_points(val_batch):
 def test_mgn_shared_is_the_ggns_core_on_mesh_and_collider_edges(val_batch):
     """The authors' plate MGN: GGNS's one-hot shared processor, no world edges, no points."""
     model, ggns = make(MGNShared), make(GGNS)
-    assert (model.edge_partition, model.type_encoding) == (ggns.edge_partition, ggns.type_encoding)
+    assert model.processor == ggns.processor == "shared" and model.core.type_encoding == ggns.core.type_encoding
     assert not model.uses_points and [str(s) for s in model.schedules] == ["never"]
     graph = first_graph(model, val_batch, True)
     assert set(graph.node_types) == {"mesh", "collider"}
@@ -97,12 +99,17 @@ def test_ggns_m_is_ggns_given_the_material(val_batch):
 
 
 @pytest.mark.parametrize("cls, partition", [(GGNS, True), (MGNM, False)])
-def test_type_partition_swaps_the_processor_and_survives_a_checkpoint(cls, partition, tiny_data_dir, val_batch,
-                                                                      tmp_path):
-    """type_partition overrides the class's architecture: GGNS with MGN's per-type encoders and edge
-    MLPs, or MGN with GGNS's one-hot shared processor (the paper's "MGN (1H)" ablation); the graph
-    (points, world edges, material) stays the class's, and a trained checkpoint rebuilds the same modules."""
-    default, model = make(cls), make(cls, type_partition=partition, statistics_batches=1)
+def test_the_processor_component_swaps_the_layout_and_survives_a_checkpoint(cls, partition, tiny_data_dir,
+                                                                            val_batch, tmp_path):
+    """`processor` chooses the layout of any class: GGNS with MGN's per-type encoders and edge MLPs, or
+    MGN with GGNS's one-hot shared processor (the paper's "MGN (1H)" ablation); the graph (points, world
+    edges, material) stays the class's, and a trained checkpoint rebuilds the same modules. An unknown
+    layout is refused by name."""
+    layout = "per_type" if partition else "shared"
+    default, model = make(cls), make(cls, processor=layout, statistics_batches=1)
+    assert default.processor == cls.default_processor != layout and model.processor == layout
+    with pytest.raises(ValueError, match="processor must be one of"):
+        make(cls, processor="per_edge")
     assert (default.edge_partition, default.core.type_encoding) == (not partition, "one_hot" if partition else "per_type")
     assert (model.edge_partition, model.core.type_encoding) == (partition, "per_type" if partition else "one_hot")
     edge_mlp = model.core.processor[0].edge_mlp
@@ -170,7 +177,7 @@ def test_each_model_overfits_one_window(cls, window, factor, trajs):
     clouds always, p = 1, for the GGNS models, so the input never changes), 100 steps of the real
     `window_loss`, must cut that window's loss by `factor`: 5 for GGNS / GGNS+LSTM (observed
     13-31x over seeds), 20 for MGN / MGN(M) (observed 59-144x)."""
-    kwargs = dict(latent=32, blocks=2, noise_std=0.0, lr=3e-3)
+    kwargs = dict(latent=32, blocks=2, noise=TrainingNoise(std=0.0), lr_schedule=LRSchedule(lr=3e-3))
     if cls in (GGNS, GGNSLSTM):
         kwargs["point_probability"] = 1.0
     if cls is GGNSLSTM:
@@ -263,7 +270,7 @@ def test_lstm_window_loss_carries_state_through_the_window(trajs):
     window = collate([WindowDataset(trajs["train"], 3)[0]])
     singles = [collate([WindowDataset(trajs["train"], 1)[s]]) for s in range(3)]
     for cls, carries in ((GGNS, False), (GGNSLSTM, True)):
-        model = make(cls, point_probability=1.0, noise_std=0.0)
+        model = make(cls, point_probability=1.0, noise=dict(std=0.0))
         model.fit_normalizers([window])
         with torch.no_grad():
             whole = model.window_loss(window, train=False)
@@ -276,11 +283,11 @@ def test_lstm_truncated_backpropagation_trains_only_the_last_transitions(trajs, 
     state that the first two carried forward (the full window's last term), and it trains the LSTM;
     `backprop_steps=window` is the paper's loss; the setting survives a checkpoint."""
     window = collate([WindowDataset(trajs["train"], 3)[0]])
-    full = make(GGNSLSTM, window=3, point_probability=1.0, noise_std=0.0)
+    full = make(GGNSLSTM, window=3, point_probability=1.0, noise=dict(std=0.0))
     full.fit_normalizers([window])
-    truncated = make(GGNSLSTM, window=3, point_probability=1.0, noise_std=0.0, backprop_steps=1)
+    truncated = make(GGNSLSTM, window=3, point_probability=1.0, noise=dict(std=0.0), backprop_steps=1)
     truncated.load_state_dict(full.state_dict())
-    same = make(GGNSLSTM, window=3, point_probability=1.0, noise_std=0.0, backprop_steps=3)
+    same = make(GGNSLSTM, window=3, point_probability=1.0, noise=dict(std=0.0), backprop_steps=3)
     same.load_state_dict(full.state_dict())
     free = ~window.fixed
     with torch.no_grad():
@@ -307,7 +314,7 @@ def test_training_loss_by_point_clouds(trajs):
     time; equal meshes, so the whole loss is their mean over all samples. A group absent is left out."""
     windows = [WindowDataset(trajs["train"], 1)[i] for i in range(3 * (T - 1))]
     batch = collate(windows)
-    model = make(GGNS, noise_std=0.0)
+    model = make(GGNS, noise=dict(std=0.0))
     model.fit_normalizers([batch])
     torch.manual_seed(3)
     drawn = torch.rand(batch.num_graphs) < 0.5  # the draw `training_graphs` makes first (no noise)
@@ -394,10 +401,10 @@ def test_nan_rollout_names_step_and_trajectory(val_batch):
 
 
 def test_noise_field_moves_free_nodes_smoothly_and_is_refused_when_negative(trajs):
-    """`noise_field_std`: training inputs get a smooth field on the free nodes (fixed ones stay), the
+    """`noise.field_std`: training inputs get a smooth field on the free nodes (fixed ones stay), the
     target is corrected by it (x_{t+1} - noisy x_t); evaluation inputs get none; a negative std is refused."""
     batch = collate([WindowDataset(trajs["train"], 1)[0]])
-    model = make(GGNS, noise_std=0.0, noise_field_std=0.05)
+    model = make(GGNS, noise=TrainingNoise(std=0.0, field_std=0.05))
     torch.manual_seed(0)
     (graph, target), = model.training_graphs(batch, train=True)
     moved = graph["mesh"].pos - batch.positions[0]
@@ -406,16 +413,18 @@ def test_noise_field_moves_free_nodes_smoothly_and_is_refused_when_negative(traj
     torch.testing.assert_close(target, batch.positions[1] - graph["mesh"].pos)
     (clean, _), = model.training_graphs(batch, train=False)
     assert torch.equal(clean["mesh"].pos, batch.positions[0])
-    with pytest.raises(ValueError, match="noise_field_std >= 0"):
-        make(GGNS, noise_field_std=-0.1)
+    with pytest.raises(ValueError, match="field_std >= 0"):
+        make(GGNS, noise=dict(field_std=-0.1))
+    with pytest.raises(ValueError, match=r"unknown fields \['fieldstd'\]"):
+        make(GGNS, noise=dict(fieldstd=0.1))
 
 
 def test_noise_field_on_point_cloud_samples_only_and_its_linear_decay(trajs, tiny_data_dir, tmp_path):
-    """`noise_field_points_only`: a window drawn without its point clouds gets no field (a blind step
-    cannot see it); `noise_field_decay_steps`: the field's std falls linearly to 0 with the optimizer
+    """`noise.field_points_only`: a window drawn without its point clouds gets no field (a blind step
+    cannot see it); `noise.field_decay_steps`: the field's std falls linearly to 0 with the optimizer
     step. Both survive a checkpoint round trip as hyperparameters; bad settings are refused."""
     batch = collate([WindowDataset(trajs["train"], 1)[i] for i in range(4)])
-    model = make(GGNS, noise_std=0.0, noise_field_std=0.05, noise_field_points_only=True, point_probability=0.5)
+    model = make(GGNS, noise=TrainingNoise(std=0.0, field_std=0.05, field_points_only=True), point_probability=0.5)
     for seed in range(20):  # the first seed that draws both kinds among the 4 windows
         torch.manual_seed(seed)
         (graph, _), = model.training_graphs(batch, train=True)
@@ -428,22 +437,22 @@ def test_noise_field_on_point_cloud_samples_only_and_its_linear_decay(trajs, tin
     for g in range(batch.num_graphs):
         nodes = (batch.mesh_batch == g) & ~batch.fixed
         assert (moved[nodes] > 0).all() if with_points[g] else (moved[nodes] == 0).all(), g
-    decaying = make(GGNS, noise_field_std=0.04, noise_field_decay_steps=100)
-    assert decaying.noise_field_std_now() == 0.04  # no trainer: step 0
-    assert [linear_decay(0.04, 100, step) for step in (0, 25, 100, 150)] == pytest.approx([0.04, 0.03, 0.0, 0.0])
-    assert linear_decay(0.04, 0, 10**6) == 0.04
+    decaying = make(GGNS, noise=dict(field_std=0.04, field_decay_steps=100))
+    assert decaying.noise.field_std_at(decaying.global_step) == 0.04  # no trainer: step 0
+    assert [decaying.noise.field_std_at(step) for step in (0, 25, 100, 150)] == pytest.approx([0.04, 0.03, 0.0, 0.0])
+    assert TrainingNoise(field_std=0.04).field_std_at(10**6) == 0.04
     decaying.hparams.statistics_batches = 1
     trainer = quiet_trainer(tmp_path)  # one optimizer step
     trainer.fit(decaying, SimulationDataModule("plate_tiny", data_dir=str(tiny_data_dir), batch_size=4,
                                                generate_missing=False))
-    assert decaying.noise_field_std_now() == pytest.approx(0.04 * (1 - 1 / 100))
+    assert decaying.noise.field_std_at(decaying.global_step) == pytest.approx(0.04 * (1 - 1 / 100))
     trainer.save_checkpoint(tmp_path / "model.ckpt")
     loaded = GGNS.load_from_checkpoint(tmp_path / "model.ckpt", weights_only=True)
-    assert (loaded.hparams.noise_field_decay_steps, loaded.hparams.noise_field_points_only) == (100, False)
-    with pytest.raises(ValueError, match="noise_field_points_only needs point clouds"):
-        make(MGN, noise_field_points_only=True)
-    with pytest.raises(ValueError, match="noise_field_decay_steps must be >= 0"):
-        make(GGNS, noise_field_decay_steps=-1)
+    assert loaded.noise == decaying.noise and loaded.hparams.noise["field_decay_steps"] == 100
+    with pytest.raises(ValueError, match="field_points_only needs point clouds"):
+        make(MGN, noise=dict(field_points_only=True))
+    with pytest.raises(ValueError, match="field_decay_steps must be an integer >= 0"):
+        make(GGNS, noise=dict(field_decay_steps=-1))
 
 
 def test_ggns_id_reads_the_material_from_points_only_and_never_from_the_label(val_batch, tiny_data_dir, tmp_path):

@@ -128,7 +128,7 @@ def test_per_type_ggnsid_fits_and_tests_on_tiny_tissue(tiny, tmp_path):
     from ggns.models.simulators import GGNSID, load_simulator
 
     config, _ = tiny
-    extra = ["--model.class_path", "ggns.models.simulators.GGNSID", "--model.init_args.type_partition", "true"]
+    extra = ["--model.class_path", "ggns.models.simulators.GGNSID", "--model.init_args.processor", "per_type"]
     checkpoint, metrics = fit_and_test_3d("tissue", "ggns", config["output"], tmp_path, latent=16, blocks=2, extra=extra)
     assert "rollout_mse_k1" in metrics
     model = load_simulator(checkpoint)

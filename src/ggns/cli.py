@@ -11,7 +11,11 @@ manifest and refused for data of another scene (`ggns.pretrained`). Nothing give
 silently dropped for the checkpoint's: a checkpoint of another model class than the config's is
 refused, and so is a model argument given on the command line that the checkpoint would replace
 by a different value (`CheckpointMismatchError`). A trainer with a logger also logs the learning
-rate of every optimizer step as `train/lr` (Lightning's LearningRateMonitor). A fit stopped by SIGTERM
+rate of every optimizer step as `train/lr` (Lightning's LearningRateMonitor); every fit keeps its random
+generators' states in its checkpoints (`RandomState`) and every test writes its report (`TestReport`),
+unless the config already has them. Model arguments of older versions (`--model.init_args.noise_std`,
+`lr_decay_rate`, `type_partition`, ...) are refused naming their new place (`RENAMED_ARGS`), and
+checkpoints written with them are converted when read (`upgrade_hparams`). A fit stopped by SIGTERM
 (a cluster's pre-emption, `kill`) saves its state to last.ckpt before it ends (`LastCheckpointOnSigterm`),
 and `python -m ggns` then exits with status 143, so a resume continues from the step it stopped at.
 """
@@ -19,6 +23,9 @@ from __future__ import annotations
 
 import re
 import sys
+from pathlib import Path
+
+import yaml
 
 from pytorch_lightning import Trainer
 from pytorch_lightning.callbacks import Callback, LearningRateMonitor, ModelCheckpoint
@@ -29,7 +36,9 @@ from pytorch_lightning.utilities.exceptions import SIGTERMException
 from .checkpoints import check_format, read_checkpoint
 from .config import config_file, load_config
 from .data.module import SimulationDataModule
-from .models.simulators import GraphSimulator
+from .evaluation.callbacks import TestReport
+from .models.random_state import RandomState
+from .models.simulators import RENAMED_ARGS, GraphSimulator, upgrade_hparams
 from .pretrained import PREFIX, check_data, checkpoint_path, shipped_name
 
 # Evaluation settings, not part of a trained model: with --ckpt_path they still come from the command
@@ -41,11 +50,22 @@ class CheckpointMismatchError(ValueError):
     """--ckpt_path names a checkpoint that contradicts the model the config or the command line asks for."""
 
 
+def refuse_renamed_args(args: list[str]) -> None:
+    """A model argument of an older version on the command line (`--model.init_args.noise_std`) raises
+    ValueError naming where it is now (`RENAMED_ARGS`)."""
+    old = sorted(command_line_model_args(args) & set(RENAMED_ARGS))
+    if old:
+        raise ValueError("model arguments renamed when the simulators were built from parts: " +
+                         "; ".join(f"{name} is now {RENAMED_ARGS[name]}" for name in old) +
+                         " (e.g. --model.init_args.noise.std 0.01, --model.init_args.lr_schedule.lr 1e-3)")
+
+
 def command_line_model_args(args: list[str]) -> set[str]:
-    """The model init arguments given on a command line (`--model.init_args.NAME[=V]` or `--model.NAME`)."""
+    """The model init arguments given on a command line (`--model.init_args.NAME[=V]` or `--model.NAME`; a
+    component's field, `--model.init_args.noise.std`, names its component, `noise`)."""
     names = set()
     for arg in args:
-        match = re.match(r"--model\.(?:init_args\.)?([A-Za-z_]\w*)(?:=|$)", str(arg))
+        match = re.match(r"--model\.(?:init_args\.)?([A-Za-z_]\w*)(?:\.[A-Za-z_][\w.]*)?(?:=|$)", str(arg))
         if match and match.group(1) not in ("class_path", "init_args", "dict_kwargs"):
             names.add(match.group(1))
     return names
@@ -80,12 +100,26 @@ class SimulatorCLI(LightningCLI):
         trainer = super().instantiate_trainer(**kwargs)
         if trainer.loggers and not any(isinstance(c, LearningRateMonitor) for c in trainer.callbacks):
             trainer.callbacks.append(LearningRateMonitor(logging_interval="step"))
+        for kind in (RandomState, TestReport):
+            if not any(isinstance(c, kind) for c in trainer.callbacks):
+                trainer.callbacks.append(kind())
         trainer.callbacks.append(LastCheckpointOnSigterm())
         return trainer
+
+    def add_arguments_to_parser(self, parser) -> None:
+        parser.add_argument("--base", type=str | None, default=None,
+                            help="in a config file: the config it extends (a path relative to it, or a shipped "
+                                 "config such as `trainer`), applied before it (ggns.cli.config_bases)")
+
+    def before_instantiate_classes(self) -> None:
+        """The saved config.yaml is the whole merged config: it extends nothing (`base` cleared)."""
+        if self.subcommand is not None and "base" in self.config[self.subcommand]:
+            self.config[self.subcommand]["base"] = None
 
     def parse_arguments(self, parser, args) -> None:
         if not isinstance(args, dict):
             args = shipped_configs([str(a) for a in (sys.argv[1:] if args is None else args)])
+            refuse_renamed_args(args)
         self._given_args = args if not isinstance(args, dict) else []
         super().parse_arguments(parser, args)
 
@@ -103,7 +137,7 @@ class SimulatorCLI(LightningCLI):
         given = {k: init_args[k] for k in command_line_model_args(getattr(self, "_given_args", []))
                  if init_args is not None and k in init_args and k not in EVALUATION_ARGS}
         kept = {k: init_args[k] for k in EVALUATION_ARGS if init_args is not None and k in init_args}
-        super()._parse_ckpt_path()
+        self._parse_checkpoint_hparams(subcommand)
         model = self.config[subcommand].model
         path = self.config[subcommand].ckpt_path
         if asked_class and model.get("class_path") != asked_class:
@@ -119,6 +153,22 @@ class SimulatorCLI(LightningCLI):
                 f" (only the evaluation settings {list(EVALUATION_ARGS)} can change at test time)")
         for key, value in kept.items():
             self.config[subcommand].model.init_args[key] = value
+
+    def _parse_checkpoint_hparams(self, subcommand: str) -> None:
+        """Lightning's `_parse_ckpt_path` on the checkpoint's hyperparameters as this version's init
+        arguments (`upgrade_hparams`), read as data."""
+        hparams = dict(read_checkpoint(self.config[subcommand].ckpt_path).get("hyper_parameters", {}))
+        hparams.pop("_instantiator", None)
+        if not hparams:
+            return
+        hparams = upgrade_hparams(hparams)
+        if "_class_path" in hparams:
+            hparams = {"class_path": hparams.pop("_class_path"), "dict_kwargs": hparams}
+        try:
+            self.config = self.parser.parse_object({subcommand: {"model": hparams}}, self.config)
+        except SystemExit:
+            sys.stderr.write("Parsing of ckpt_path hyperparameters failed!\n")
+            raise
 
     def _check_pretrained(self, subcommand: str) -> None:
         """`--ckpt_path pretrained:<task>/<model>` (or a shipped file's path): the verified shipped file
@@ -145,14 +195,48 @@ def _differ(given, stored) -> bool:
 def shipped_configs(args: list[str]) -> list[str]:
     """`--config` values that name a shipped config (`plate/ggns`, or `conf/plate/ggns.yaml` from a folder
     without that file) replaced by the package's file (ggns.config.config_file), so that the presets work
-    from any folder once ggns is installed."""
-    out = list(args)
-    for i, arg in enumerate(out):
-        if arg == "--config" and i + 1 < len(out):
-            out[i + 1] = str(config_file(out[i + 1]))
+    from any folder once ggns is installed; a config that names a `base` (`config_bases`) is preceded by
+    its bases, each as a `--config` of its own, so that it extends them."""
+    out, i = [], 0
+    while i < len(args):
+        arg = args[i]
+        if arg == "--config" and i + 1 < len(args):
+            value, i = args[i + 1], i + 2
         elif arg.startswith("--config="):
-            out[i] = "--config=" + str(config_file(arg.split("=", 1)[1]))
+            value, i = arg.split("=", 1)[1], i + 1
+        else:
+            out.append(arg)
+            i += 1
+            continue
+        path = config_file(value)
+        for file in [*config_bases(path), path]:
+            out += ["--config", str(file)]
     return out
+
+
+def config_bases(path: Path) -> list[Path]:
+    """The configs a Lightning config extends, outermost first: its top-level `base:` (a path relative to
+    the config's folder, or a shipped config's name such as `trainer`), that one's base, and so on. The
+    config then applies over them: its keys replace theirs, and `callbacks+:` appends to their callbacks.
+    A missing base or a cycle raises ValueError naming the config."""
+    chain, seen = [], {path.resolve()} if path.is_file() else set()
+    while path.is_file():
+        try:
+            base = (yaml.safe_load(path.read_text()) or {}).get("base")
+        except (yaml.YAMLError, AttributeError):
+            return chain  # not a mapping: the parser names the problem
+        if base is None:
+            break
+        found = path.parent / str(base)
+        found = found if found.is_file() else config_file(str(base))
+        if not found.is_file():
+            raise ValueError(f"{path}: its base {base!r} is neither a file beside it nor a shipped config")
+        if found.resolve() in seen:
+            raise ValueError(f"{path}: its base {base!r} makes a cycle of bases")
+        seen.add(found.resolve())
+        chain.insert(0, found)
+        path = found
+    return chain
 
 
 def build_cli(args: list[str] | None = None, run: bool = True) -> LightningCLI:

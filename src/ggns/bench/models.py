@@ -95,7 +95,7 @@ def _bench_training(name: str, model, datamodule, train_batches: int, device: to
     batches = train_batches_on(datamodule, model.window, statistics_batches + warmup + train_batches, device)
     model.fit_normalizers(batches[:statistics_batches])
     model.train()
-    optimizer = torch.optim.Adam(model.parameters(), lr=model.hparams.lr)
+    optimizer = torch.optim.Adam(model.parameters(), lr=model.lr_schedule.lr)
     iteration, construction, graphs = [], [], []
     for i, batch in enumerate(batches[statistics_batches:]):
         with ConstructionTimer(device) as timer:

@@ -2,8 +2,8 @@
 checkpoint selection per metric family, `evaluation.selection`) and rollout pictures in
 TensorBoard. Both run at the end of every validation epoch (set how often with the Trainer's
 `check_val_every_n_epoch`), never during the sanity check, and roll out through the module's
-`evaluate` / `rollout`, i.e. the one engine. `TestedCheckpoint` names the checkpoint a `test`
-evaluated; `RolloutWriter` writes the rollouts of `predict` as a predictions file.
+`evaluate` / `rollout`, i.e. the one engine. `TestReport` writes a `test`'s metrics and names the
+checkpoint it evaluated; `RolloutWriter` writes the rollouts of `predict` as a predictions file.
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from ..data.predictions import Predictions, write_predictions
 from ..data.schema import SplitReader
 from ..reports import write_json, write_text
 from ..viz import figure_to_image
-from .evaluate import zero_motion_one_step_mse
+from .evaluate import metrics_markdown, zero_motion_one_step_mse
 from .pictures import rollout_picture
 from .schedules import EveryK, Never, Schedule, effective_schedules, parse_schedule
 from .selection import CHECKPOINT_KEY, M10, checkpoint_info, describe, val_metric
@@ -134,24 +134,27 @@ class RolloutEvaluation(pl.Callback):
             pl_module.log(name, value, batch_size=batch.num_graphs)
 
 
-class TestedCheckpoint(pl.Callback):
-    """Names the checkpoint that `test` evaluated (`selection.checkpoint_info`: path, global step,
-    epoch and, for a best-* checkpoint, the scalar it was selected on): prints it and adds it to the
-    run's test_metrics.md and, under "checkpoint", to test_metrics.json. Those files are written by
-    the module's `on_test_epoch_end`, which runs before this callback's `on_test_end`."""
+class TestReport(pl.Callback):
+    """Writes a `test`'s metrics beside its logs: test_metrics.md (the table) and test_metrics.json (the
+    module's `test_results`: metric -> mean, std, ... over the test trajectories), both naming the
+    checkpoint that was evaluated (`selection.checkpoint_info`: path, global step, epoch and, for a
+    best-* checkpoint, the scalar it was selected on; under "checkpoint" in the JSON). A run without a
+    log directory writes them to the working directory. `ggns.cli` adds it to every run that has none."""
 
     def on_test_end(self, trainer: pl.Trainer, pl_module) -> None:
-        if not trainer.is_global_zero:
+        summary = getattr(pl_module, "test_results", None)
+        if not trainer.is_global_zero or summary is None:
             return
         info = checkpoint_info(trainer.ckpt_path) if trainer.ckpt_path else None
         line = f"tested checkpoint: {describe(info)}" + (f", {info['path']}" if info else "")
         print(line)
         directory = Path(trainer.log_dir or ".")
-        table, summary = directory / "test_metrics.md", directory / "test_metrics.json"
-        if table.is_file():
-            write_text(table, table.read_text() + "\n" + line + "\n")
-        if summary.is_file():
-            write_json(summary, {**json.loads(summary.read_text()), CHECKPOINT_KEY: info})
+        write_text(directory / "test_metrics.md",
+                   metrics_markdown(summary, f"{type(pl_module).__name__} test metrics") + "\n" + line + "\n")
+        write_json(directory / "test_metrics.json", {**summary, CHECKPOINT_KEY: info})
+
+
+TestedCheckpoint = TestReport  # its name in configs written before it wrote the whole report
 
 
 class RolloutPictures(pl.Callback):

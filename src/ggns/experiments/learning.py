@@ -10,7 +10,7 @@ A learning file (conf/learning/<name>.yaml or a path) holds:
     base: {config: conf/plate/ggns.yaml, args: ["--data.dataset", "plate_small"]}
     variants:                                   # name -> Lightning CLI arguments (after the base's)
       paper: []
-      noise_0.005: ["--model.init_args.noise_std", "0.005"]
+      noise_0.005: ["--model.init_args.noise.std", "0.005"]
 
 Each variant is one `python -m ggns fit` in its own process (`sweep.Run` builds the command), with
 the budget and validation arguments first, then the base's, then the variant's (later ones win),

@@ -11,27 +11,33 @@
     GGNSID    beyond the paper: GGNS(M)'s dynamics fed the material that a second, small network reads
               from the point clouds seen so far (trained on the labels; rollouts never read them)
 
-A class fixes the model family (class attributes); its init args tune it. The model predicts
-the displacement x_{t+1} - x_t of every mesh node from the graph of state t (`TrajectoryBatch.
-graph`); fixed nodes take their known positions and are left out of the loss. Training adds
-Gaussian noise (`noise_std`) to the free input positions and corrects the target, so the model
-learns to return to the true next state. Input features and targets are standardized with
+A class fixes what the model reads and carries (point clouds, the material, an LSTM state, class
+attributes); it is built from parts: the connectivity (which edges), the processor layout
+(`PROCESSORS`: "shared", GGNS's one-hot types into shared encoders and one processor, or "per_type",
+MGN's per-type encoders and edge MLPs; each class defaults to the paper's), the training noise
+(`TrainingNoise`) and the learning-rate schedule (`LRSchedule`). The model predicts the displacement
+x_{t+1} - x_t of every mesh node from the graph of state t (`TrajectoryBatch.graph`); fixed nodes take
+their known positions and are left out of the loss. Training adds noise to the free input positions
+and corrects the target, so the model learns to return to the true next state. Input features and targets are standardized with
 statistics from one pass over the training data at the start of `fit` (`statistics_batches`
 limits it), which are saved with the checkpoint. Under DDP every process makes the pass over its own
 share of the windows and the statistics are merged across processes (exact, `Normalizer.merge`), so
 all ranks normalize alike and as one process over the same windows would.
 
-A fit's checkpoint also holds the state of torch's random generator of every process (`RNG_KEY`:
-the training noise and the imputation draws come from it); a fit resumed from it (`fit --ckpt_path`)
-sets it back before its first batch, so that, with the data order `SimulationDataModule` resumes, the
-resumed fit repeats what the uninterrupted one would have done (tests/test_faults.py).
+What a run does around the model is in callbacks: `RandomState` keeps the random generators' states
+in a fit's checkpoints so that a resumed fit repeats the uninterrupted one, `evaluation.callbacks.
+TestReport` writes the test metrics beside the logs (`ggns.cli` adds both to every run).
+
+Checkpoints hold the hyperparameters as plain values (components as dicts); those written before
+the components existed (flat `noise_std`, `lr_decay_rate`, `type_partition`, ...) are converted when
+read (`upgrade_hparams`).
 """
 from __future__ import annotations
 
 import dataclasses
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import pytorch_lightning as pl
 from pytorch_lightning.strategies import DDPStrategy
@@ -51,81 +57,95 @@ from ..graphs.connectivity import Connectivity, load_connectivity
 from ..graphs.state import state_graph
 from ..graphs.types import MESH_EDGE
 from ..phases import host_side, phase
-from ..reports import write_json, write_text
 from .core import EncodeProcessDecode, graph_features, inverse_counts
-from .lr_schedule import scheduled_lr, validate_schedule
+from .lr_schedule import LRSchedule
 from .normalization import DEFAULT_STD_FLOOR, Normalizer, merge_across
-from .training_noise import smooth_field
-
-RNG_KEY = "ggns_rng_states"
+from .training_noise import TrainingNoise, smooth_field
 
 LstmState = tuple[Tensor, Tensor] | None
 
+# the processor layouts: name -> (one edge MLP per edge type, node type encoding)
+PROCESSORS = {"shared": (False, "one_hot"), "per_type": (True, "per_type")}
 
-def linear_decay(value: float, steps: int, step: int) -> float:
-    """`value` falling linearly to 0 over `steps` (0: constant), at `step`."""
-    return value * max(0.0, 1.0 - step / steps) if steps else value
+# init arguments of the simulators before the components: old name -> (component, field) or a converter
+_FLAT_NOISE = {"noise_std": "std", "noise_field_std": "field_std", "noise_field_wavelength": "field_wavelength",
+               "noise_field_mixture": "field_mixture", "noise_field_points_only": "field_points_only",
+               "noise_field_decay_steps": "field_decay_steps"}
+_FLAT_LR = {"lr": "lr", "lr_final": "final", "lr_decay_rate": "decay_rate", "lr_decay_steps": "decay_steps",
+            "lr_warmup_steps": "warmup_steps"}
+RENAMED_ARGS = {**{k: f"noise.{v}" for k, v in _FLAT_NOISE.items()},
+                **{k: f"lr_schedule.{v}" for k, v in _FLAT_LR.items()},
+                "type_partition": "processor (\"per_type\" for true, \"shared\" for false)"}
+
+
+def upgrade_hparams(hparams: dict) -> dict:
+    """A simulator's hyperparameters as this version's init arguments: the flat training-noise,
+    lr-schedule and `type_partition` arguments of checkpoints written before the components
+    (`TrainingNoise`, `LRSchedule`, `processor`) moved into them; anything else is kept as it is."""
+    out = {k: v for k, v in hparams.items() if k not in _FLAT_NOISE and k not in _FLAT_LR and k != "type_partition"}
+    noise = {field: hparams[old] for old, field in _FLAT_NOISE.items() if old in hparams}
+    schedule = {field: hparams[old] for old, field in _FLAT_LR.items() if old in hparams}
+    if noise:
+        out["noise"] = {**dict(out.get("noise") or {}), **noise}
+    if schedule:
+        out["lr_schedule"] = {**dict(out.get("lr_schedule") or {}), **schedule}
+    if hparams.get("type_partition") is not None:
+        out["processor"] = "per_type" if hparams["type_partition"] else "shared"
+    return out
 
 
 class GraphSimulator(pl.LightningModule):
-    """Shared base (module docstring). Args:
+    """Shared base (module docstring).
+
+    Args:
         connectivity: graph preset (conf/graphs/<name>.yaml) or YAML path.
         dim: spatial dimension of the scene (2 or 3).
         latent, blocks, mlp_layers: core size (paper: 128, 5, 1).
+        processor: the processor layout, "shared" or "per_type" (`PROCESSORS`); None: the class's
+            default (the paper's: GGNS "shared", MGN "per_type"). The paper's "MGN (1H)" ablation is MGN
+            with "shared".
         point_probability: chance that a training sample (a window for the LSTM) gets its point clouds.
-        noise_std: std of the training noise on free input mesh positions (task-space units).
-        noise_field_std, noise_field_wavelength, noise_field_mixture: std, wavelength and per-graph scale
-            mixture of a smooth random displacement field added on top (`training_noise.smooth_field`;
-            std 0, the default, is the paper's noise alone).
-        noise_field_points_only: the field only on training samples that get their point clouds (a blind
-            step cannot see a smooth offset, so there it only adds unlearnable noise to the target).
-        noise_field_decay_steps: the field's std falls linearly to 0 over this many optimizer steps
-            (0, the default: constant).
-        lr: Adam learning rate (paper: 5e-4).
-        lr_final, lr_decay_rate, lr_decay_steps, lr_warmup_steps: schedule per optimizer step (`lr_schedule`):
-            lr_final + (lr - lr_final) * lr_decay_rate ** (step / lr_decay_steps), times a linear warm-up over
-            lr_warmup_steps; lr_decay_rate = 1 and no warm-up (the defaults) keep the paper's constant lr.
+        noise: the training noise (`TrainingNoise`, or a mapping of its fields; paper: std 0.01).
+        lr_schedule: Adam's learning rate per optimizer step (`LRSchedule`, or a mapping of its fields;
+            paper: a constant 5e-4).
         window: transitions per training sample (backpropagation through time for the LSTM).
         eval_schedules: point-cloud schedules of the test rollouts ("every:K", "first:M", "never").
-        test_m_plus_10, test_iou: also compute the m+10-step error and the IoU (2D: areas; 3D: volumes, every 10th state) in `test`.
+        test_m_plus_10, test_iou: also compute the m+10-step error and the IoU (2D: areas; 3D: volumes,
+            every 10th state) in `test`.
         statistics_batches: training batches in the normalization pass (None: the whole split).
         std_floor: lower bound of every normalization std (see `normalization.DEFAULT_STD_FLOOR`).
-        type_partition: True: MGN's per-type encoders and one edge MLP per edge type; False: GGNS's
-            one-hot types into shared encoders and one shared processor; None: the class's own (the
-            paper's: GGNS False, MGN True). The paper's "MGN (1H)" ablation is MGN with False.
     """
 
-    edge_partition = False  # one edge MLP per edge type (MGN) or one shared processor (GGNS)
-    type_encoding = "one_hot"  # "one_hot" (GGNS) or "per_type" encoders (MGN)
+    default_processor = "shared"  # the processor layout of the class in the paper (`PROCESSORS`)
     recurrent = False  # LSTM between processor and decoder
     backprop_steps: int | None = None  # truncated backpropagation (GGNSLSTM)
     with_material = False  # Poisson's ratio as a mesh node feature, from the data (MGN(M))
     material_input = False  # a material column that the model fills itself (GGNSID), not the graph
 
     def __init__(self, connectivity: str = "plate_full_graph", dim: int = 2, latent: int = 128, blocks: int = 5,
-                 mlp_layers: int = 1, point_probability: float = 0.5, noise_std: float = 0.01, lr: float = 5e-4,
-                 window: int = 1, eval_schedules: tuple[str, ...] = ("every:1", "every:2", "every:5", "every:10", "never"),
+                 mlp_layers: int = 1, processor: Literal["shared", "per_type"] | None = None, point_probability: float = 0.5,
+                 noise: TrainingNoise = TrainingNoise(), lr_schedule: LRSchedule = LRSchedule(), window: int = 1,
+                 eval_schedules: tuple[str, ...] = ("every:1", "every:2", "every:5", "every:10", "never"),
                  test_m_plus_10: bool = True, test_iou: bool = True, statistics_batches: int | None = None,
-                 std_floor: float = DEFAULT_STD_FLOOR, lr_final: float = 0.0, lr_decay_rate: float = 1.0,
-                 lr_decay_steps: int = 1, lr_warmup_steps: int = 0, noise_field_std: float = 0.0,
-                 noise_field_wavelength: float = 4.0, noise_field_mixture: bool = False,
-                 type_partition: bool | None = None, noise_field_points_only: bool = False,
-                 noise_field_decay_steps: int = 0):
+                 std_floor: float = DEFAULT_STD_FLOOR):
         super().__init__()
-        self.save_hyperparameters()
-        validate_schedule(lr, lr_final, lr_decay_rate, lr_decay_steps, lr_warmup_steps)
+        self.noise, self.lr_schedule = TrainingNoise.of(noise), LRSchedule.of(lr_schedule)
+        self.save_hyperparameters(ignore=["noise", "lr_schedule"])
+        # checkpoints hold plain values (`ggns.checkpoints`): the components as dicts of their fields
+        self.hparams.update(noise=dataclasses.asdict(self.noise), lr_schedule=dataclasses.asdict(self.lr_schedule))
         if dim not in (2, 3):
             raise ValueError(f"dim must be 2 or 3, got {dim}")
         if not 0.0 <= point_probability <= 1.0:
             raise ValueError(f"point_probability must lie in [0, 1], got {point_probability}")
-        if noise_std < 0 or noise_field_std < 0 or noise_field_wavelength <= 0 or window < 1:
-            raise ValueError(f"need noise_std >= 0, noise_field_std >= 0, noise_field_wavelength > 0 and window >= 1; "
-                             f"got {noise_std}, {noise_field_std}, {noise_field_wavelength}, {window}")
-        if noise_field_decay_steps < 0:
-            raise ValueError(f"noise_field_decay_steps must be >= 0, got {noise_field_decay_steps}")
+        if window < 1:
+            raise ValueError(f"window must be >= 1, got {window}")
+        if processor is not None and processor not in PROCESSORS:
+            raise ValueError(f"processor must be one of {sorted(PROCESSORS)} (or None: the class's "
+                             f"{self.default_processor!r}), got {processor!r}")
+        self.processor = processor or self.default_processor
         self.connectivity: Connectivity = load_connectivity(connectivity)
-        if noise_field_points_only and not self.connectivity.uses_points:
-            raise ValueError(f"noise_field_points_only needs point clouds, and connectivity {connectivity!r} has no "
+        if self.noise.field_points_only and not self.connectivity.uses_points:
+            raise ValueError(f"noise.field_points_only needs point clouds, and connectivity {connectivity!r} has no "
                              f"point edges")
         if point_probability > 0 and not self.connectivity.uses_points:
             raise ValueError(f"point_probability={point_probability} but connectivity {connectivity!r} has no point "
@@ -136,13 +156,10 @@ class GraphSimulator(pl.LightningModule):
                              f"connectivity without point radii")
         self.schedules: list[Schedule] = [parse_schedule(s) for s in eval_schedules]
         self.window = window
-        if type_partition is not None:  # the paper's "MGN (1H)" ablation and its converse, per instance
-            self.edge_partition = type_partition
-            self.type_encoding = "per_type" if type_partition else "one_hot"
         self.core = EncodeProcessDecode(*self.input_dims(self.connectivity, dim, self.with_material or self.material_input),
                                         out_dim=dim,
                                         latent=latent, blocks=blocks, mlp_layers=mlp_layers,
-                                        edge_partition=self.edge_partition, type_encoding=self.type_encoding,
+                                        **self.processor_layout(),
                                         std_floor=std_floor)
         self.target_normalizer = Normalizer(dim, std_floor)
         self.lstm = nn.LSTMCell(latent, latent) if self.recurrent else None
@@ -163,6 +180,16 @@ class GraphSimulator(pl.LightningModule):
             if r > 0 and edge_type[0] in node_dims and edge_type[2] in node_dims:
                 edge_dims[edge_type] = dim + 1
         return node_dims, edge_dims
+
+    def processor_layout(self) -> dict:
+        """`EncodeProcessDecode`'s layout arguments for this model's `processor`."""
+        edge_partition, type_encoding = PROCESSORS[self.processor]
+        return {"edge_partition": edge_partition, "type_encoding": type_encoding}
+
+    @property
+    def edge_partition(self) -> bool:
+        """One edge MLP per edge type (the "per_type" processor)."""
+        return PROCESSORS[self.processor][0]
 
     @property
     def uses_points(self) -> bool:
@@ -214,23 +241,12 @@ class GraphSimulator(pl.LightningModule):
         self.neighbour_check.step = self.global_step
         for t in range(batch.num_steps - 1):
             pos = batch.positions[t]
-            if train and self.hparams.noise_std > 0:
-                pos = pos + torch.randn_like(pos) * self.hparams.noise_std * free
-            field_std = self.noise_field_std_now() if train else 0.0
-            if field_std > 0:
-                field = smooth_field(batch.rest, batch.mesh_batch, batch.num_graphs, field_std,
-                                     self.hparams.noise_field_wavelength,
-                                     mixture=self.hparams.noise_field_mixture)
-                if self.hparams.noise_field_points_only:
-                    field = field * use_points.to(pos.device, non_blocking=True)[batch.mesh_batch, None]
-                pos = pos + field * free
+            if train:
+                pos = self.noise.perturb(pos, free, batch.rest, batch.mesh_batch, batch.num_graphs, self.global_step,
+                                         use_points)
             graph = state_graph(batch, t, pos, use_points, self.connectivity, self.with_material, self.neighbour_check)
             samples.append((graph, batch.positions[t + 1] - pos))
         return samples
-
-    def noise_field_std_now(self) -> float:
-        """The smooth field's std at this optimizer step (`noise_field_decay_steps`)."""
-        return linear_decay(self.hparams.noise_field_std, self.hparams.noise_field_decay_steps, self.global_step)
 
     def window_loss(self, batch: TrajectoryBatch, train: bool = True,
                     by_points: bool = False) -> Tensor | tuple[Tensor, dict[str, Tensor]]:
@@ -342,13 +358,7 @@ class GraphSimulator(pl.LightningModule):
     def configure_optimizers(self):
         """Adam with the `lr_schedule` stepped after every optimizer step; its lr is logged as `train/lr`
         (by the LearningRateMonitor that `ggns.cli` adds to every CLI fit with a logger)."""
-        h = self.hparams
-        optimizer = torch.optim.Adam(self.parameters(), lr=h.lr, fused=True)  # one kernel for all parameters
-        schedule = dict(lr=h.lr, lr_final=h.lr_final, decay_rate=h.lr_decay_rate, decay_steps=h.lr_decay_steps,
-                        warmup_steps=h.lr_warmup_steps)
-        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: scheduled_lr(step, **schedule) / h.lr)
-        return {"optimizer": optimizer,
-                "lr_scheduler": {"scheduler": scheduler, "interval": "step", "frequency": 1, "name": "train/lr"}}
+        return self.lr_schedule.optimizers(self.parameters())
 
     @torch.no_grad()
     def fit_normalizers(self, batches) -> int:
@@ -448,15 +458,12 @@ class GraphSimulator(pl.LightningModule):
         self._test_table.add(self.evaluate(batch, m_plus_10=self.hparams.test_m_plus_10, iou=self.hparams.test_iou))
 
     def on_test_epoch_end(self) -> None:
+        """`test_results`: metric name -> {"mean", "std", ...} over the test trajectories (each mean logged
+        as `test/<name>`); the `TestReport` callback writes them beside the logs."""
         summary = self._test_table.summary()
         for name, s in summary.items():
             self.log(f"test/{name}", s["mean"])
-        table = metrics_markdown(summary, f"{type(self).__name__} test metrics")
-        print("\n" + table)
-        log_dir = self.trainer.log_dir
-        if log_dir is not None and self.trainer.is_global_zero:
-            write_text(Path(log_dir) / "test_metrics.md", table)
-            write_json(Path(log_dir) / "test_metrics.json", summary)
+        print("\n" + metrics_markdown(summary, f"{type(self).__name__} test metrics"))
         self.test_results = summary
 
     def predict_step(self, batch: TrajectoryBatch, batch_idx: int) -> dict[str, Any]:
@@ -468,43 +475,14 @@ class GraphSimulator(pl.LightningModule):
     def _world_size(self) -> int:
         return self._trainer.world_size if self._trainer is not None else 1
 
-    def _rng_states(self) -> dict[str, Tensor]:
-        """{generator: state of every rank [world size, n] uint8}: torch's CPU generator, and the CUDA one
-        of this device when on a GPU (gathered from every rank under DDP: all ranks save together)."""
-        states = {"cpu": torch.get_rng_state()}
-        if self.device.type == "cuda":
-            states["cuda"] = torch.cuda.get_rng_state(self.device)
-        if self._world_size() > 1:
-            return {k: self.all_gather(v.to(self.device)).cpu() for k, v in states.items()}
-        return {k: v[None] for k, v in states.items()}
-
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         self.raise_if_checks_failed()  # a step since the last read that went non-finite is never saved
         checkpoint["connectivity"] = dataclasses.asdict(self.connectivity)
         checkpoint["simulator_class"] = type(self).__name__
         checkpoint[FORMAT_KEY] = CHECKPOINT_FORMAT
-        if self._trainer is not None and self.trainer.state.fn == "fit":  # a fit's checkpoint: resumable
-            checkpoint[RNG_KEY] = self._rng_states()
-
-    def on_train_start(self) -> None:
-        """A resumed fit takes back its generators' states (saved by `on_save_checkpoint`) just before its
-        first batch: nothing between loading and here (validation, loaders) draws from them."""
-        states, self._saved_rng = getattr(self, "_saved_rng", None), None
-        if states is None or self.trainer.ckpt_path is None:
-            return
-        rank, world = self.global_rank, self._world_size()
-        if any(v.shape[0] != world for v in states.values()):
-            warnings.warn(f"the checkpoint was written by a fit of {next(iter(states.values())).shape[0]} processes, "
-                          f"this one has {world}: its random generators start afresh and the resumed fit "
-                          "differs from an uninterrupted one", stacklevel=2)
-            return
-        torch.set_rng_state(states["cpu"][rank].clone())
-        if "cuda" in states and self.device.type == "cuda":
-            torch.cuda.set_rng_state(states["cuda"][rank].clone(), self.device)
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         check_format(checkpoint, "the checkpoint")
-        self._saved_rng = checkpoint.get(RNG_KEY)  # taken back by on_train_start when the fit resumes
         saved = checkpoint.get("connectivity")
         if saved is not None and saved != dataclasses.asdict(self.connectivity):
             warnings.warn(f"connectivity preset {self.hparams.connectivity!r} changed since the checkpoint was "
@@ -566,8 +544,8 @@ class GGNSID(GGNS):
         h = self.hparams
         self.estimator = EncodeProcessDecode(*self.input_dims(self.connectivity, h.dim, True), out_dim=2,
                                              latent=estimator_latent, blocks=estimator_blocks,
-                                             mlp_layers=h.mlp_layers, edge_partition=self.edge_partition,
-                                             type_encoding=self.type_encoding, std_floor=h.std_floor)
+                                             mlp_layers=h.mlp_layers, **self.processor_layout(),
+                                             std_floor=h.std_floor)
         self.material_normalizer = Normalizer(1, h.std_floor)
 
     @staticmethod
@@ -621,8 +599,8 @@ class GGNSID(GGNS):
             return graph
         has = torch.zeros(batch.num_graphs, dtype=torch.bool, device=batch.device)
         has[graph["point"].batch] = True
-        field = smooth_field(batch.rest, batch.mesh_batch, batch.num_graphs, std,
-                             self.hparams.noise_field_wavelength, mixture=True)
+        field = smooth_field(batch.rest, batch.mesh_batch, batch.num_graphs, std, self.noise.field_wavelength,
+                             mixture=True)
         pos = graph["mesh"].pos + field * ~batch.fixed[:, None]
         return state_graph(batch, t, pos, has, self.connectivity, self.with_material)
 
@@ -673,10 +651,10 @@ class GGNSLSTM(GraphSimulator):
 
 
 class MGN(GraphSimulator):
-    """MeshGraphNets baseline: per-type encoders and edge MLPs, world edges, no point clouds."""
+    """MeshGraphNets baseline: per-type encoders and edge MLPs (its default processor), world edges, no
+    point clouds."""
 
-    edge_partition = True
-    type_encoding = "per_type"
+    default_processor = "per_type"
 
     def __init__(self, connectivity: str = "plate_mgn", point_probability: float = 0.0,
                  eval_schedules: tuple[str, ...] = ("never",), **kwargs):
@@ -710,23 +688,34 @@ def load_simulator(path: str | Path, map_location=None) -> GraphSimulator:
     as data only (`ggns.checkpoints`: a file that would run code is refused with CheckpointError, and
     so is one of another checkpoint format). The class is stored in the checkpoint
     ("simulator_class"); for checkpoints without it the class whose parameters load strictly is used
-    (their parameter sets differ)."""
+    (their parameter sets differ). Hyperparameters of checkpoints written before the components are
+    converted (`upgrade_hparams`)."""
     checkpoint = read_checkpoint(path, map_location="cpu")
     check_format(checkpoint, path)
+    if "hyper_parameters" not in checkpoint or "state_dict" not in checkpoint:
+        raise CheckpointError(f"{path}: not a Lightning checkpoint of a ggns simulator")
     classes = {cls.__name__: cls for cls in MODELS.values()}
     name = checkpoint.get("simulator_class")
     if name is not None:
         if name not in classes:
             raise CheckpointError(f"{path}: unknown simulator_class {name!r} (known: {sorted(classes)})")
-        return classes[name].load_from_checkpoint(path, map_location=map_location, weights_only=True).eval()
-    if "hyper_parameters" not in checkpoint or "state_dict" not in checkpoint:
-        raise CheckpointError(f"{path}: not a Lightning checkpoint of a ggns simulator")
+        return from_checkpoint(classes[name], checkpoint, map_location)
     errors = []
     for cls in classes.values():
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                return cls.load_from_checkpoint(path, map_location=map_location, strict=True, weights_only=True).eval()
+                return from_checkpoint(cls, checkpoint, map_location)
         except (RuntimeError, KeyError, TypeError, ValueError) as error:
             errors.append(f"{cls.__name__}: {str(error).splitlines()[0][:120]}")
     raise CheckpointError(f"{path}: no simulator class loads this checkpoint ({'; '.join(errors)})")
+
+
+def from_checkpoint(cls: type[GraphSimulator], checkpoint: dict, map_location=None) -> GraphSimulator:
+    """A `cls` built from a checkpoint dict's (upgraded) hyperparameters with its weights loaded strictly,
+    in eval mode."""
+    hparams = {k: v for k, v in upgrade_hparams(checkpoint["hyper_parameters"]).items() if not k.startswith("_")}
+    model = cls(**hparams)
+    model.on_load_checkpoint(checkpoint)
+    model.load_state_dict(checkpoint["state_dict"], strict=True)
+    return (model.to(map_location) if map_location is not None else model).eval()

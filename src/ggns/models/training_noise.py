@@ -1,6 +1,6 @@
-"""Training noise on the input mesh positions.
+"""Training noise on the input mesh positions: the `TrainingNoise` component of the simulators.
 
-`noise_std` is the paper's: independent Gaussian noise per node and coordinate. A network can undo
+`std` is the paper's: independent Gaussian noise per node and coordinate. A network can undo
 most of it from the mesh alone (the true deformation is smooth, the noise is not), so it barely
 teaches a grounded model to use its point clouds. The errors a rollout accumulates are smooth
 instead: a mesh-only model cannot see them, the point cloud can. `smooth_field` draws such an
@@ -9,10 +9,85 @@ per graph of the batch, to be added with the same target correction as the paper
 """
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Mapping
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+
+
+@dataclass(frozen=True)
+class TrainingNoise:
+    """What a simulator adds to the free input mesh positions of its training samples (the target is
+    corrected by the same amount, so the model learns to return to the true next state).
+
+    Args:
+        std: std of the paper's per-node Gaussian noise (task-space units; paper: 0.01).
+        field_std: std of a smooth random displacement field added on top (`smooth_field`; 0, the
+            default, is the paper's noise alone).
+        field_wavelength: the field's wavelength in rest-space units.
+        field_mixture: each graph's field scaled by u ~ U(0, sqrt 3) (`smooth_field`'s mixture).
+        field_points_only: the field only on samples that get their point clouds (a blind step cannot
+            see a smooth offset, so there it only adds unlearnable noise to the target).
+        field_decay_steps: the field's std falls linearly to 0 over this many optimizer steps (0: constant).
+    """
+
+    std: float = 0.01
+    field_std: float = 0.0
+    field_wavelength: float = 4.0
+    field_mixture: bool = False
+    field_points_only: bool = False
+    field_decay_steps: int = 0
+
+    def __post_init__(self):
+        if not (self.std >= 0 and self.field_std >= 0 and self.field_wavelength > 0):
+            raise ValueError(f"training noise: need std >= 0, field_std >= 0 and field_wavelength > 0; got "
+                             f"{self.std}, {self.field_std}, {self.field_wavelength}")
+        if isinstance(self.field_decay_steps, bool) or not isinstance(self.field_decay_steps, int) \
+                or self.field_decay_steps < 0:
+            raise ValueError(f"training noise: field_decay_steps must be an integer >= 0, got {self.field_decay_steps!r}")
+
+    @classmethod
+    def of(cls, value: TrainingNoise | Mapping | None) -> TrainingNoise:
+        """The component from itself, a mapping of its fields (a config, a checkpoint's hyperparameters) or
+        None (the defaults); an unknown field is refused by name."""
+        if value is None:
+            return cls()
+        if isinstance(value, cls):
+            return value
+        if isinstance(value, Mapping):
+            unknown = set(value) - {f.name for f in dataclasses.fields(cls)}
+            if unknown:
+                raise ValueError(f"training noise: unknown fields {sorted(unknown)} (known: "
+                                 f"{[f.name for f in dataclasses.fields(cls)]})")
+            return cls(**value)
+        raise TypeError(f"training noise must be a TrainingNoise or a mapping, got {type(value).__name__}")
+
+    def field_std_at(self, step: int) -> float:
+        """The smooth field's std at optimizer step `step` (`field_decay_steps`)."""
+        if not self.field_decay_steps:
+            return self.field_std
+        return self.field_std * max(0.0, 1.0 - step / self.field_decay_steps)
+
+    def perturb(self, pos: Tensor, free: Tensor, rest: Tensor, owner: Tensor, num_graphs: int, step: int,
+                with_points: Tensor | bool) -> Tensor:
+        """Noisy input positions [N, d] from `pos` [N, d]: noise on the nodes where `free` [N, 1] is true.
+        rest [N, d], owner [N] (the graph of each node), num_graphs: for the field; step: the optimizer
+        step (its decay); with_points: [num_graphs] bool, which graphs get their point clouds (or one bool)."""
+        if self.std > 0:
+            pos = pos + torch.randn_like(pos) * self.std * free
+        field_std = self.field_std_at(step)
+        if field_std > 0:
+            field = smooth_field(rest, owner, num_graphs, field_std, self.field_wavelength, mixture=self.field_mixture)
+            if self.field_points_only:
+                if isinstance(with_points, bool):
+                    field = field * float(with_points)
+                else:
+                    field = field * with_points.to(pos.device, non_blocking=True)[owner, None]
+            pos = pos + field * free
+        return pos
 
 
 def smooth_field(rest: Tensor, owner: Tensor, num_graphs: int, std: float, wavelength: float,

@@ -1,5 +1,5 @@
 """GGNSID's material estimate along rollouts under point-cloud schedules (issue 24, the k=5 question):
-python scripts/material_trace.py CHECKPOINT [--dataset plate --split test --trajectories 27 --schedules 1,5]
+python scripts/material_trace.py CHECKPOINT [--dataset plate --data-dir DIR --split test --trajectories 27 --schedules 1,5]
 
 Rolls the checkpoint out one step at a time from S_0 under "a point cloud every k steps" for each k and
 prints, every 5 steps, the mean |estimate - Poisson's ratio| over the trajectories (GGNSID; nan for a
@@ -26,6 +26,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoint")
     parser.add_argument("--dataset", default="plate")
+    parser.add_argument("--data-dir", default=None, help="folder of the split files (default: the preset's output)")
     parser.add_argument("--split", default="test")
     parser.add_argument("--trajectories", type=int, default=27)
     parser.add_argument("--schedules", default="1,5", help="comma-separated k")
@@ -35,7 +36,7 @@ def main() -> None:
     args = parser.parse_args()
     model = load_model(args.checkpoint, map_location="cpu")
     carries = hasattr(model, "material_estimate")  # GGNSID; any other model: the position error only
-    data = SimulationDataModule(args.dataset, generate_missing=False)
+    data = SimulationDataModule(args.dataset, data_dir=args.data_dir, generate_missing=False)
     batch = TrajectoryBatch.from_trajectories(data.trajectories(args.split)[:args.trajectories])
     last = batch.num_steps - 1
     print("| k | step | material error | material error, true states | share off by > 0.2 | position MSE |\n"

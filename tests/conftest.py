@@ -236,7 +236,8 @@ SLOW_FIRST = (
     "test_shipped_simulator_loads_and_reproduces_its_manifest",
     "test_the_demo_runs_end_to_end_on_tiny_sizes",
 )
-SHARED_GROUPS = {"test_demo.py": "tiny_registry", "test_pretrained.py": "tiny_registry"}
+SHARED_GROUPS = {"test_demo.py": "tiny_registry", "test_pretrained.py": "tiny_registry",
+                 "test_scripts.py": "test_simulators.py"}  # the latter: one tiny_data_dir for both
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups

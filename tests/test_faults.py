@@ -110,11 +110,12 @@ def _fit_config(directory: Path) -> Path:
 
     from ggns.config import CONF_DIR
 
-    config = yaml.safe_load((CONF_DIR / "plate" / "ggns.yaml").read_text())
-    (last,) = [c for c in config["trainer"]["callbacks"] if c.get("init_args", {}).get("filename") == "last"]
+    callbacks = (yaml.safe_load((CONF_DIR / "trainer.yaml").read_text())["trainer"]["callbacks"] +
+                 yaml.safe_load((CONF_DIR / "plate" / "ggns.yaml").read_text())["trainer"]["callbacks+"])
+    (last,) = [c for c in callbacks if c.get("init_args", {}).get("filename") == "last"]
     last["init_args"] = {"filename": "last", "every_n_train_steps": 3}
-    path = directory / "ggns_last_every_3_steps.yaml"
-    path.write_text(yaml.safe_dump(config))
+    path = directory / "ggns_last_every_3_steps.yaml"  # extends the shipped config, its callbacks replaced
+    path.write_text(yaml.safe_dump({"base": "plate/ggns", "trainer": {"callbacks": callbacks}}))
     return path
 
 

@@ -534,3 +534,19 @@ def test_ggns_id_estimator_noise_moves_only_the_estimators_mesh(val_batch, tiny_
     assert torch.isfinite(positions).all()
     with pytest.raises(ValueError, match="estimator_noise_std >= 0"):
         make(GGNSID, estimator_noise_std=-0.1)
+
+
+@pytest.mark.parametrize("cls", [GGNS, GGNSID, GGNSLSTM, MGNM])
+def test_components_are_saved_as_plain_values_and_come_back(cls, tmp_path):
+    """A model given its parts as objects (`TrainingNoise`, `LRSchedule`, as LightningCLI gives them) writes a
+    checkpoint that reads as data (no class in it) and loads with the same parts and processor."""
+    from ggns.checkpoints import read_checkpoint
+    from conftest import save_untrained
+
+    noise, schedule = TrainingNoise(std=0.02, field_std=0.01), LRSchedule(lr=1e-3, decay_rate=0.5, decay_steps=10)
+    model = make(cls, noise=noise, lr_schedule=schedule, processor="per_type")
+    checkpoint = read_checkpoint(save_untrained(model, tmp_path / "model.ckpt"))
+    assert checkpoint["hyper_parameters"]["noise"] == dataclasses.asdict(noise)
+    assert checkpoint["hyper_parameters"]["lr_schedule"] == dataclasses.asdict(schedule)
+    loaded = load_simulator(tmp_path / "model.ckpt")
+    assert (type(loaded), loaded.noise, loaded.lr_schedule, loaded.processor) == (cls, noise, schedule, "per_type")

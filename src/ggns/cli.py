@@ -103,6 +103,11 @@ class SimulatorCLI(LightningCLI):
         for kind in (RandomState, TestReport):
             if not any(isinstance(c, kind) for c in trainer.callbacks):
                 trainer.callbacks.append(kind())
+        # last.ckpt after every other checkpoint of the same hook, so that it holds their newest states (a
+        # model config appends its best-k1 checkpoint after the base's `last`)
+        for callback in [c for c in trainer.callbacks if isinstance(c, ModelCheckpoint) and c.filename == "last"]:
+            trainer.callbacks.remove(callback)
+            trainer.callbacks.append(callback)
         trainer.callbacks.append(LastCheckpointOnSigterm())
         return trainer
 

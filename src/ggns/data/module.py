@@ -12,8 +12,8 @@ permutation, and a fit resumed from a checkpoint saved in the middle of an epoch
 pre-emption, a SIGKILL) starts that epoch's permutation after the batches its `global_step` says
 were already trained on, so the resumed fit sees the windows the uninterrupted one would have. No
 loader draws from torch's global random generator (each has its own), so the training noise and the
-imputation draws, which do, are the same sequence however the loaders are created (the model saves
-that generator's state in its checkpoints, `GraphSimulator.on_save_checkpoint`).
+imputation draws, which do, are the same sequence however the loaders are created (that generator's
+state is kept in a fit's checkpoints by the `models.random_state.RandomState` callback).
 
 The dataset is named by a data preset (conf/data/<name>.yaml or a YAML path): its `output`
 directory holds <split>.h5, or the split's shard files made by a job array (`generate --shard i/n`),

@@ -1,4 +1,5 @@
-"""The four learned simulators as LightningModules sharing one base, one core and one rollout engine.
+"""The learned simulators as LightningModules sharing one base, one core and one rollout engine: the
+paper's four (GGNS, GGNS+LSTM, MGN, MGN(M)), the authors' plate MGN, and two beyond the paper.
 
     GGNS      the paper's model: one-hot node/edge types into shared encoders, one homogeneous
               processor, trained by imputation (a sample has its point cloud with prob. p)
@@ -35,6 +36,7 @@ read (`upgrade_hparams`).
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import warnings
 from pathlib import Path
 from typing import Any, Literal
@@ -100,7 +102,9 @@ class GraphSimulator(pl.LightningModule):
     Args:
         connectivity: graph preset (conf/graphs/<name>.yaml) or YAML path.
         dim: spatial dimension of the scene (2 or 3).
-        latent, blocks, mlp_layers: core size (paper: 128, 5, 1).
+        latent: width of every latent vector of the core (paper: 128).
+        blocks: message-passing blocks of the processor (paper: 5).
+        mlp_layers: hidden layers of every MLP (paper: 1).
         processor: the processor layout, "shared" or "per_type" (`PROCESSORS`); None: the class's
             default (the paper's: GGNS "shared", MGN "per_type"). The paper's "MGN (1H)" ablation is MGN
             with "shared".
@@ -110,8 +114,8 @@ class GraphSimulator(pl.LightningModule):
             paper: a constant 5e-4).
         window: transitions per training sample (backpropagation through time for the LSTM).
         eval_schedules: point-cloud schedules of the test rollouts ("every:K", "first:M", "never").
-        test_m_plus_10, test_iou: also compute the m+10-step error and the IoU (2D: areas; 3D: volumes,
-            every 10th state) in `test`.
+        test_m_plus_10: also compute the m+10-step error in `test`.
+        test_iou: also compute the IoU in `test` (2D: areas; 3D: volumes, every 10th state).
         statistics_batches: training batches in the normalization pass (None: the whole split).
         std_floor: lower bound of every normalization std (see `normalization.DEFAULT_STD_FLOOR`).
     """
@@ -130,9 +134,7 @@ class GraphSimulator(pl.LightningModule):
                  std_floor: float = DEFAULT_STD_FLOOR):
         super().__init__()
         self.noise, self.lr_schedule = TrainingNoise.of(noise), LRSchedule.of(lr_schedule)
-        self.save_hyperparameters(ignore=["noise", "lr_schedule"])
-        # checkpoints hold plain values (`ggns.checkpoints`): the components as dicts of their fields
-        self.hparams.update(noise=dataclasses.asdict(self.noise), lr_schedule=dataclasses.asdict(self.lr_schedule))
+        self.save_hyperparameters()
         if dim not in (2, 3):
             raise ValueError(f"dim must be 2 or 3, got {dim}")
         if not 0.0 <= point_probability <= 1.0:
@@ -180,6 +182,15 @@ class GraphSimulator(pl.LightningModule):
             if r > 0 and edge_type[0] in node_dims and edge_type[2] in node_dims:
                 edge_dims[edge_type] = dim + 1
         return node_dims, edge_dims
+
+    def save_hyperparameters(self, *args, ignore=None, frame=None, logger: bool = True) -> None:
+        """Lightning's, with the components kept as dicts of their fields: checkpoints hold plain values
+        (`ggns.checkpoints`), and a subclass that saves its own arguments keeps them so too."""
+        super().save_hyperparameters(*args, ignore=ignore, frame=frame or inspect.currentframe().f_back,
+                                     logger=logger)
+        for key in ("noise", "lr_schedule"):
+            if key in self.hparams:
+                self.hparams[key] = dataclasses.asdict(getattr(self, key))
 
     def processor_layout(self) -> dict:
         """`EncodeProcessDecode`'s layout arguments for this model's `processor`."""

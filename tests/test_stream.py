@@ -9,6 +9,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+import pytorch_lightning as pl
 import torch
 
 from ggns.config import CONF_DIR, load_config
@@ -16,7 +17,7 @@ from ggns.data.generate import generate
 from ggns.data.module import SimulationDataModule, WindowDataset
 from ggns.data.schema import DatasetError
 from ggns.data.stream import BlockSampler, StreamedSplit, StreamingWindowDataset, parse_bytes
-from conftest import T
+from conftest import T, make, quiet_trainer
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 COUNT = 8  # training trajectories
@@ -188,3 +189,46 @@ def test_broken_missing_or_foreign_files_are_refused_by_name(stream_data, tmp_pa
         _module(preset).train_dataloader()
     with pytest.raises(ValueError, match="memory size"):
         _module(preset, budget="a lot")
+
+
+class _Crash(pl.Callback):
+    """Raises at the start of training step `step`, as a killed process stops (what it saved stays)."""
+
+    def __init__(self, step: int):
+        self.step = step
+
+    def on_train_batch_start(self, trainer, *_):
+        if trainer.global_step == self.step:
+            raise RuntimeError("crash")
+
+
+def _streamed_fit(preset: Path, root: Path, budget: int, crash: int | None = None, resume: Path | None = None):
+    """2 epochs of 7 batches of a tiny GGNS through the streaming reader, last.ckpt every 3 steps; returns
+    the model."""
+    from pytorch_lightning.callbacks import ModelCheckpoint
+
+    from ggns.models.simulators import GGNS
+
+    pl.seed_everything(0, verbose=False)
+    model = make(GGNS, latent=8, blocks=1, statistics_batches=2)
+    callbacks = [ModelCheckpoint(dirpath=root, filename="last", every_n_train_steps=3, enable_version_counter=False)]
+    trainer = quiet_trainer(root, max_epochs=2, limit_train_batches=1.0, enable_checkpointing=True,
+                            callbacks=callbacks + ([_Crash(crash)] if crash is not None else []))
+    trainer.fit(model, _module(preset, budget=budget), ckpt_path=resume)
+    assert trainer.global_step == 2 * WINDOWS // 8
+    return model
+
+
+def test_a_streamed_fit_stopped_mid_epoch_resumes_to_the_uninterrupted_weights(stream_data, tmp_path):
+    """Blocks of 2 trajectories; stopped at step 11 (epoch 1), resumed from the step-9 checkpoint: the resumed
+    fit trains on the windows (and the noise draws) the uninterrupted one did, so the weights are equal."""
+    preset = stream_data["whole"]
+    budget = 2 * max(StreamingWindowDataset(_module(preset).trajectories("train"), 1, 0).nbytes)
+    whole = _streamed_fit(preset, tmp_path / "whole", budget)
+    with pytest.raises(RuntimeError, match="crash"):
+        _streamed_fit(preset, tmp_path / "run", budget, crash=11)
+    last = tmp_path / "run" / "last.ckpt"
+    assert torch.load(last, weights_only=True)["global_step"] == 9
+    resumed = _streamed_fit(preset, tmp_path / "run", budget, resume=last)
+    for name, value in whole.state_dict().items():
+        torch.testing.assert_close(resumed.state_dict()[name], value, rtol=1e-6, atol=1e-9, msg=name)

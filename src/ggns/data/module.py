@@ -139,12 +139,15 @@ class SimulationDataModule(pl.LightningDataModule):
             needed, at most this many bytes of them kept for training (shared among the `num_workers`
             workers), the training order in blocks that fit (`stream.BlockSampler`). None (default): every
             split is loaded into memory.
+        stream_lanes: lanes of the streamed training order, a multiple of the processes (None: one per
+            process, each reading only its own trajectories). Equal lanes give equal windows per step
+            however many processes share them (1 process with batches of 2B trains as 2 with B).
     """
 
     def __init__(self, dataset: str = DEFAULT_DATASET, data_dir: str | None = None, batch_size: int = 32,
                  train_window: int | None = None, eval_batch_size: int = 32, max_eval_trajectories: int | None = None,
                  num_workers: int = 0, generate_missing: bool = True, seed: int | None = None,
-                 memory_budget: str | int | None = None):
+                 memory_budget: str | int | None = None, stream_lanes: int | None = None):
         super().__init__()
         for name, value in (("batch_size", batch_size), ("eval_batch_size", eval_batch_size)):
             if value < 1:
@@ -160,6 +163,7 @@ class SimulationDataModule(pl.LightningDataModule):
         from .stream import parse_bytes  # (stream imports EpochSampler from here: imported where used)
 
         self.memory_budget = None if memory_budget is None else parse_bytes(memory_budget)
+        self.stream_lanes = stream_lanes
         self.imported = "importer" in self.config  # the authors' data, imported: nothing to generate
         self._trajectories: dict[str, Sequence[Trajectory]] = {}
 
@@ -272,7 +276,8 @@ class SimulationDataModule(pl.LightningDataModule):
             from .stream import BlockSampler
 
             dataset = self._windows("train", self.reader_budget())
-            sampler = BlockSampler(dataset, self._seed(), self.reader_budget(), num_replicas=world, rank=rank)
+            sampler = BlockSampler(dataset, self._seed(), self.reader_budget(), num_replicas=world, rank=rank,
+                                   lanes=self.stream_lanes)
         else:
             dataset = self._windows("train")
             sampler = EpochSampler(dataset, self._seed(), num_replicas=world, rank=rank)

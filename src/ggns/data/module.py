@@ -23,6 +23,11 @@ preset with an `importer` section (conf/data/reference_*.yaml) names imported da
 authors' datasets, `ggns.data.reference`): it is never generated, and a missing split names the
 import command. A split file generated with another scene, solver or sensor configuration than
 the preset's is refused (`schema.read_trajectories`), never mixed in silently.
+
+With a `memory_budget`, a split whose files are larger than it is not loaded: it is read in pieces
+(`ggns.data.stream`, docs/streaming.md), trajectories read when a window or a rollout needs them, the
+training windows in a block order (`stream.BlockSampler`) that keeps the reads within the budget, as
+seeded and resumable as `EpochSampler`'s.
 """
 from __future__ import annotations
 

@@ -5,7 +5,9 @@ case's peak alone: a Lightning fit of `--steps` steps of a small GGNS on the dat
 32 one-step windows, one process, no DataLoader workers, no validation), through `SimulationDataModule` with
 `memory_budget` None (every split in memory) or `--budget` (streamed: `ggns.data.stream`). Reported per case:
 the peak RSS, the RSS before the fit (imports, model), training steps/s after `--warmup` steps, and for
-the streamed reader the trajectories read and the most bytes its cache kept.
+the streamed reader the trajectories read and the most bytes its cache kept. Then, after the peak was
+taken, the reading cost alone: training windows per second of a fresh train loader over `--steps`
+batches (reads and collation, no model; epoch 1's order).
 
     python scripts/bench_stream.py --data data/plate_small --budget 4MB --steps 150 --repeats 3 \\
         --output docs/results/stream/plate_small
@@ -29,7 +31,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-FIELDS = ["reader", "repeat", "peak_rss_mb", "rss_before_fit_mb", "steps_per_s", "steps", "split_mb_on_disk",
+FIELDS = ["reader", "repeat", "peak_rss_mb", "rss_before_fit_mb", "steps_per_s", "loader_windows_per_s", "steps",
+          "split_mb_on_disk",
           "trajectories", "cache_reads", "cache_peak_mb", "budget_bytes"]
 
 
@@ -66,8 +69,17 @@ def run_case(args) -> dict:
     measured = times[args.warmup - 1:]
     cache = getattr(trainer.train_dataloader.dataset, "cache", None)
     files, _ = data.files("train")
+    loader = data.train_dataloader()  # a fresh dataset: its cache starts empty
+    loader.sampler.set_epoch(1)
+    start, windows = time.perf_counter(), 0
+    for i, batch in enumerate(loader):
+        windows += batch.num_graphs
+        if i + 1 == args.steps:
+            break
+    loader_rate = windows / (time.perf_counter() - start)
     return {"peak_rss_mb": round(peak, 1), "rss_before_fit_mb": round(before, 1),
-            "steps_per_s": round((len(measured) - 1) / (measured[-1] - measured[0]), 3), "steps": len(times),
+            "steps_per_s": round((len(measured) - 1) / (measured[-1] - measured[0]), 3),
+            "loader_windows_per_s": round(loader_rate, 1), "steps": len(times),
             "split_mb_on_disk": round(sum(f.stat().st_size for f in files) / 1e6, 1),
             "trajectories": len(data.trajectories("train")),
             "cache_reads": cache.reads if cache is not None else "",
@@ -110,7 +122,7 @@ def main(argv=None) -> None:
             print(row, flush=True)
             rows.append(row)
     summary = {reader: {key: statistics.median(r[key] for r in rows if r["reader"] == reader)
-                        for key in ("peak_rss_mb", "rss_before_fit_mb", "steps_per_s")}
+                        for key in ("peak_rss_mb", "rss_before_fit_mb", "steps_per_s", "loader_windows_per_s")}
                for reader in ("memory", "stream")}
     print(json.dumps(summary, indent=2))
     if args.output:

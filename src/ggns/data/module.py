@@ -261,8 +261,8 @@ class SimulationDataModule(pl.LightningDataModule):
         return super().transfer_batch_to_device(batch, device, dataloader_idx)
 
     def reader_budget(self) -> int:
-        """The training cache's bytes in each reading process (the budget shared among the workers)."""
-        return self.memory_budget // max(1, self.num_workers)
+        """The training cache's bytes in each reading process (the budget shared among the workers; 0 without one)."""
+        return (self.memory_budget or 0) // max(1, self.num_workers)
 
     def _windows(self, split: str, cache_bytes: int = 0) -> Dataset:
         trajs = self.trajectories(split)
@@ -277,15 +277,14 @@ class SimulationDataModule(pl.LightningDataModule):
         rank of the trainer's world), from the batch after the trainer's `global_step` (a resumed fit)."""
         trainer = self.trainer
         world, rank = getattr(trainer, "world_size", 1), getattr(trainer, "global_rank", 0)
-        if self.streams("train"):
+        dataset = self._windows("train", self.reader_budget())
+        if isinstance(dataset, WindowDataset):
+            sampler = EpochSampler(dataset, self._seed(), num_replicas=world, rank=rank)
+        else:
             from .stream import BlockSampler
 
-            dataset = self._windows("train", self.reader_budget())
             sampler = BlockSampler(dataset, self._seed(), self.reader_budget(), num_replicas=world, rank=rank,
                                    lanes=self.stream_lanes)
-        else:
-            dataset = self._windows("train")
-            sampler = EpochSampler(dataset, self._seed(), num_replicas=world, rank=rank)
         if getattr(trainer, "global_step", 0) > 0:
             batches = math.ceil(len(sampler) / self.batch_size)
             limit = trainer.limit_train_batches

@@ -234,7 +234,8 @@ class BlockSampler(EpochSampler):
         dataset: the windows.
         seed: of the order.
         block_bytes: most trajectory bytes in a block (the cache's budget; a block holds at least one).
-        num_replicas, rank: the DDP world size and this process's rank.
+        num_replicas: the DDP world size.
+        rank: this process's rank.
         lanes: a multiple of num_replicas (None: num_replicas). With one lane an epoch holds every window
             exactly once, as EpochSampler's.
     """

@@ -21,6 +21,8 @@ in the middle of an epoch continues it exactly (`EpochSampler.resume`).
 Memory model per reading process (the main one, or each DataLoader worker): the training cache's budget
 (the data module gives each of `num_workers` workers budget / num_workers, so that all together keep at
 most the budget), plus the one validation trajectory being cut into windows, plus the batches in flight.
+Workers get batches in turn, so each of them reads the trajectories of the current block: with w workers,
+each trajectory is read w times per epoch.
 """
 from __future__ import annotations
 

@@ -29,7 +29,7 @@ STEPS = 8  # 2 epochs of 4 batches
 
 def _fit(data, logs, version: str, processes: int, batch_size: int,
          strategy: str = "ddp_find_unused_parameters_true", validate: bool = False,
-         command: str = "fit") -> subprocess.CompletedProcess:
+         command: str = "fit", extra: tuple[str, ...] = ()) -> subprocess.CompletedProcess:
     command = [sys.executable, "-m", "ggns", command, "--config", str(CONF_DIR / "plate" / "mgn.yaml"),
                "--data.dataset", str(data / TINY12), "--data.data_dir", str(data),
                "--data.batch_size", str(batch_size), "--data.generate_missing", "false", "--seed_everything", "0",
@@ -40,7 +40,7 @@ def _fit(data, logs, version: str, processes: int, batch_size: int,
                "--trainer.max_epochs", "2", "--trainer.limit_train_batches", "4",
                "--trainer.limit_val_batches", "1" if validate else "0", "--trainer.check_val_every_n_epoch", "1",
                "--trainer.log_every_n_steps", "1", "--trainer.accelerator", "cpu",
-               "--trainer.devices", str(processes), "--trainer.strategy", strategy]
+               "--trainer.devices", str(processes), "--trainer.strategy", strategy, *extra]
     # SIGKILL on timeout: a rank stuck in a collective ignores the SIGTERM that subprocess.run would send
     with subprocess.Popen(command, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": "1"}, stdout=subprocess.PIPE,
                           stderr=subprocess.PIPE, text=True, start_new_session=True) as proc:
@@ -94,6 +94,26 @@ def test_two_ddp_processes_train_as_one_with_twice_the_batch(cli_data, tmp_path)
             for step, value in values.items():
                 assert val_ddp[tag][step] == pytest.approx(value, rel=1e-4), (tag, step)
     assert sorted(p.name for p in (one / "checkpoints").iterdir()) == sorted(p.name for p in (two / "checkpoints").iterdir())
+
+
+def test_streamed_two_ddp_processes_train_as_one_with_twice_the_batch(cli_data, tmp_path):
+    """The same through the streaming reader (issue 39, every split streamed: a budget of 1 byte) with 2 lanes
+    in both runs: each process reads only its lane's trajectories, and the 2 processes' batches together are
+    the one process's, so the weights and losses are again those of one process."""
+    streamed = ("--data.memory_budget", "1", "--data.stream_lanes", "2")
+    for version, processes, batch_size in (("one", 1, 8), ("two", 2, 4)):
+        done = _fit(cli_data, tmp_path, version, processes=processes, batch_size=batch_size,
+                    strategy="ddp_find_unused_parameters_true" if processes > 1 else "auto", extra=streamed)
+        assert done.returncode == 0, done.stderr[-3000:]
+    one, two = tmp_path / "mgn" / "one", tmp_path / "mgn" / "two"
+    first, second = (torch.load(run / "checkpoints" / "last.ckpt", weights_only=True) for run in (one, two))
+    assert first["global_step"] == second["global_step"] == STEPS
+    for name, value in first["state_dict"].items():
+        torch.testing.assert_close(second["state_dict"][name], value, rtol=1e-4, atol=1e-6, msg=name)
+    losses, ddp = _losses(one), _losses(two)
+    assert sorted(losses) == sorted(ddp) and len(losses) == STEPS
+    for step in losses:
+        assert ddp[step] == pytest.approx(losses[step], rel=1e-4), step
 
 
 def test_test_and_predict_refuse_more_than_one_process(cli_data, tmp_path):

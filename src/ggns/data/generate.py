@@ -117,8 +117,9 @@ def shard_files(output: str | Path, split: str) -> list[Path]:
     ((shards, files),) = found.items()
     missing = [i for i in range(shards) if i not in files]
     if missing:
-        raise DatasetError(f"{output}: {split} shards {missing[:8]} of {shards} are missing "
-                           f"(make them with generate --shard i/{shards})")
+        names = ", ".join(shard_path(output, split, i, shards).name for i in missing[:8])
+        raise DatasetError(f"{output}: {split} shards {missing[:8]} of {shards} are missing ({names}; "
+                           f"make them with generate --shard i/{shards})")
     return [files[i] for i in range(shards)]
 
 
@@ -137,10 +138,16 @@ def read_shards(files: list[Path], config: dict, split: str) -> list:
 
     trajectories = interleave_shards([read_trajectories(f, expected_config=config) for f in files])
     for j, trajectory in enumerate(trajectories):
-        if trajectory.seed != trajectory_seed(config["seed"], split, j):
-            raise DatasetError(f"{files[j % len(files)]}: trajectory {j // len(files)} has seed {trajectory.seed}, "
-                               f"not that of trajectory {j} of this preset's {split} split (another seed or shard set)")
+        check_shard_seed(files, config, split, j, trajectory.seed)
     return trajectories
+
+
+def check_shard_seed(files: list[Path], config: dict, split: str, j: int, seed: int) -> None:
+    """Refuse (DatasetError naming the shard file) trajectory j of a split read from its shard files
+    when its stored seed is not that of trajectory j of `config`'s split (another seed or shard set)."""
+    if seed != trajectory_seed(config["seed"], split, j):
+        raise DatasetError(f"{files[j % len(files)]}: trajectory {j // len(files)} has seed {seed}, "
+                           f"not that of trajectory {j} of this preset's {split} split (another seed or shard set)")
 
 
 def parse_shard(text: str) -> tuple[int, int]:

@@ -23,12 +23,18 @@ preset with an `importer` section (conf/data/reference_*.yaml) names imported da
 authors' datasets, `ggns.data.reference`): it is never generated, and a missing split names the
 import command. A split file generated with another scene, solver or sensor configuration than
 the preset's is refused (`schema.read_trajectories`), never mixed in silently.
+
+With a `memory_budget`, a split whose files are larger than it is not loaded: it is read in pieces
+(`ggns.data.stream`, docs/streaming.md), trajectories read when a window or a rollout needs them, the
+training windows in a block order (`stream.BlockSampler`) that keeps the reads within the budget, as
+seeded and resumable as `EpochSampler`'s.
 """
 from __future__ import annotations
 
 import math
 import os
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 
 import pytorch_lightning as pl
@@ -107,8 +113,12 @@ class EpochSampler(DistributedSampler):
         self.set_epoch(epoch)
         self.start = done * batch_size
 
+    def epoch_indices(self) -> list[int]:
+        """This rank's indices of the current epoch, all of them."""
+        return list(super().__iter__())
+
     def __iter__(self):
-        indices = list(super().__iter__())
+        indices = self.epoch_indices()
         start, self.start = self.start, 0
         return iter(indices[start:])
 
@@ -129,11 +139,20 @@ class SimulationDataModule(pl.LightningDataModule):
         generate_missing: generate absent split files from the preset in `prepare_data`.
         seed: of the training order (`EpochSampler`); None takes the fit's `seed_everything` (Lightning's
             PL_GLOBAL_SEED), else 0.
+        memory_budget: bytes, or a size such as "512MB" / "2GB" (`stream.parse_bytes`). A split whose files
+            are larger is read in pieces (`ggns.data.stream`, docs/streaming.md): trajectories read when
+            needed, at most this many bytes of them kept for training (shared among the `num_workers`
+            workers), the training order in blocks that fit (`stream.BlockSampler`). None (default): every
+            split is loaded into memory.
+        stream_lanes: lanes of the streamed training order, a multiple of the processes (None: one per
+            process, each reading only its own trajectories). Equal lanes give equal windows per step
+            however many processes share them (1 process with batches of 2B trains as 2 with B).
     """
 
     def __init__(self, dataset: str = DEFAULT_DATASET, data_dir: str | None = None, batch_size: int = 32,
                  train_window: int | None = None, eval_batch_size: int = 32, max_eval_trajectories: int | None = None,
-                 num_workers: int = 0, generate_missing: bool = True, seed: int | None = None):
+                 num_workers: int = 0, generate_missing: bool = True, seed: int | None = None,
+                 memory_budget: str | int | None = None, stream_lanes: int | None = None):
         super().__init__()
         for name, value in (("batch_size", batch_size), ("eval_batch_size", eval_batch_size)):
             if value < 1:
@@ -146,8 +165,12 @@ class SimulationDataModule(pl.LightningDataModule):
         self.max_eval_trajectories = max_eval_trajectories
         self.generate_missing = generate_missing
         self.seed = seed
+        from .stream import parse_bytes  # (stream imports EpochSampler from here: imported where used)
+
+        self.memory_budget = None if memory_budget is None else parse_bytes(memory_budget)
+        self.stream_lanes = stream_lanes
         self.imported = "importer" in self.config  # the authors' data, imported: nothing to generate
-        self._trajectories: dict[str, list[Trajectory]] = {}
+        self._trajectories: dict[str, Sequence[Trajectory]] = {}
 
     def path(self, split: str) -> Path:
         return split_path(self.data_dir, split)
@@ -157,27 +180,47 @@ class SimulationDataModule(pl.LightningDataModule):
         if missing and self.generate_missing and not self.imported:
             generate({**self.config, "output": str(self.data_dir)}, missing)
 
-    def trajectories(self, split: str) -> list[Trajectory]:
-        """The trajectories of a split (loaded once; val / test cut to max_eval_trajectories)."""
+    def files(self, split: str) -> tuple[list[Path], bool]:
+        """The split's files and whether they are shards: [<split>.h5], or else its shard files made by a
+        job array (`generate --shard i/n`, read as they are, in the split's order); a FileNotFoundError
+        that names the command making the file when there are neither."""
+        path = self.path(split)
+        shards = shard_files(self.data_dir, split) if not path.exists() else []
+        if shards:
+            return shards, True
+        if not path.exists() and self.imported:
+            raise FileNotFoundError(
+                f"{path}: split file missing; import it with `python -m ggns import-reference --config "
+                f"{self.hparams.dataset} --split {split} --output {self.data_dir} --input <the authors' pickle>`")
+        if not path.exists():
+            raise FileNotFoundError(
+                f"{path}: split file missing; generate it with `python -m ggns generate --config "
+                f"{self.hparams.dataset} --output {self.data_dir}` (or set data.generate_missing=true)")
+        return [path], False
+
+    def streams(self, split: str) -> bool:
+        """Whether the split is read in pieces: a memory_budget is set and the split's files are larger."""
+        return self.memory_budget is not None and sum(f.stat().st_size for f in self.files(split)[0]) > self.memory_budget
+
+    def trajectories(self, split: str) -> Sequence[Trajectory]:
+        """The trajectories of a split (opened once; val / test cut to max_eval_trajectories): a list in
+        memory, or a `stream.StreamedSplit` that reads each when indexed (`streams`)."""
         if split not in SPLITS:
             raise ValueError(f"unknown split {split!r}; expected one of {SPLITS}")
         if split not in self._trajectories:
-            path = self.path(split)
-            shards = shard_files(self.data_dir, split) if not path.exists() else []
-            if shards:  # made by a job array (generate --shard i/n): read as they are, in the split's order
-                return self._keep(split, read_shards(shards, self.config, split), path)
-            if not path.exists() and self.imported:
-                raise FileNotFoundError(
-                    f"{path}: split file missing; import it with `python -m ggns import-reference --config "
-                    f"{self.hparams.dataset} --split {split} --output {self.data_dir} --input <the authors' pickle>`")
-            if not path.exists():
-                raise FileNotFoundError(
-                    f"{path}: split file missing; generate it with `python -m ggns generate --config "
-                    f"{self.hparams.dataset} --output {self.data_dir}` (or set data.generate_missing=true)")
-            return self._keep(split, read_trajectories(path, expected_config=self.config), path)
+            files, shards = self.files(split)
+            if self.streams(split):
+                from .stream import StreamedSplit
+
+                trajs = StreamedSplit(files, self.config, split, shards=shards)
+            elif shards:
+                trajs = read_shards(files, self.config, split)
+            else:
+                trajs = read_trajectories(files[0], expected_config=self.config)
+            return self._keep(split, trajs, self.path(split))
         return self._trajectories[split]
 
-    def _keep(self, split: str, trajs: list[Trajectory], path: Path) -> list[Trajectory]:
+    def _keep(self, split: str, trajs: Sequence[Trajectory], path: Path) -> Sequence[Trajectory]:
         if split != "train" and self.max_eval_trajectories is not None:
             trajs = trajs[: self.max_eval_trajectories]
         if not trajs:
@@ -187,7 +230,8 @@ class SimulationDataModule(pl.LightningDataModule):
 
     @property
     def dim(self) -> int:
-        return self.trajectories("train")[0].dim
+        trajs = self.trajectories("train")
+        return trajs[0].dim if isinstance(trajs, list) else trajs.dim  # a StreamedSplit reads no trajectory
 
     def _window(self) -> int:
         if self.train_window is not None:
@@ -216,13 +260,31 @@ class SimulationDataModule(pl.LightningDataModule):
             return batch.to(device, non_blocking=device.type == "cuda")
         return super().transfer_batch_to_device(batch, device, dataloader_idx)
 
+    def reader_budget(self) -> int:
+        """The training cache's bytes in each reading process (the budget shared among the workers; 0 without one)."""
+        return (self.memory_budget or 0) // max(1, self.num_workers)
+
+    def _windows(self, split: str, cache_bytes: int = 0) -> Dataset:
+        trajs = self.trajectories(split)
+        if isinstance(trajs, list):
+            return WindowDataset(trajs, self._window())
+        from .stream import StreamingWindowDataset
+
+        return StreamingWindowDataset(trajs, self._window(), cache_bytes)
+
     def train_dataloader(self) -> DataLoader:
-        """Windows in `EpochSampler` order: this process's share (a rank of the trainer's world), from
-        the batch after the trainer's `global_step` (a resumed fit)."""
-        dataset = WindowDataset(self.trajectories("train"), self._window())
+        """Windows in `EpochSampler` order (`stream.BlockSampler` when streamed): this process's share (a
+        rank of the trainer's world), from the batch after the trainer's `global_step` (a resumed fit)."""
         trainer = self.trainer
         world, rank = getattr(trainer, "world_size", 1), getattr(trainer, "global_rank", 0)
-        sampler = EpochSampler(dataset, self._seed(), num_replicas=world, rank=rank)
+        dataset = self._windows("train", self.reader_budget())
+        if isinstance(dataset, WindowDataset):
+            sampler = EpochSampler(dataset, self._seed(), num_replicas=world, rank=rank)
+        else:
+            from .stream import BlockSampler
+
+            sampler = BlockSampler(dataset, self._seed(), self.reader_budget(), num_replicas=world, rank=rank,
+                                   lanes=self.stream_lanes)
         if getattr(trainer, "global_step", 0) > 0:
             batches = math.ceil(len(sampler) / self.batch_size)
             limit = trainer.limit_train_batches
@@ -231,7 +293,7 @@ class SimulationDataModule(pl.LightningDataModule):
         return self._loader(dataset, self.batch_size, sampler)
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader(WindowDataset(self.trajectories("val"), self._window()), self.batch_size)
+        return self._loader(self._windows("val"), self.batch_size)  # streamed: in order, one trajectory kept
 
     def test_dataloader(self) -> DataLoader:
         return self._loader(TrajectoryDataset(self.trajectories("test")), self.eval_batch_size)
@@ -244,6 +306,6 @@ class SimulationDataModule(pl.LightningDataModule):
         """The first `count` trajectories of a split as one batch (rollout callbacks); of those, process
         `rank` of `world` takes every `world`-th from its rank (None when that leaves it none)."""
         trajs = self.trajectories(split)
-        mine = (trajs[:count] if count else trajs)[rank::world]
+        mine = list((trajs[:count] if count else trajs)[rank::world])  # streamed: reads only these
         return TrajectoryBatch.from_trajectories(mine, device=device) if mine else None
 

@@ -15,12 +15,12 @@ import operator
 import os
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, NamedTuple
 
 import h5py
 import numpy as np
 
-from ..trajectory import Trajectory
+from ..trajectory import GROUND_TRUTH, Trajectory
 from ..geometry import signed_volumes
 from ..sim.material import Material
 
@@ -308,6 +308,14 @@ def _fsync(path: Path) -> None:
         os.close(fd)
 
 
+class TrajectoryInfo(NamedTuple):
+    """What a split file says about a trajectory without reading its arrays (`SplitReader.info`)."""
+
+    num_steps: int  # T, the initial state included
+    nbytes: int  # its arrays' size in memory (float64 positions etc., as read)
+    has_ground_truth: bool  # Trajectory.has_ground_truth
+
+
 class SplitReader:
     """Read a split file; validates the file on construction.
 
@@ -373,6 +381,24 @@ class SplitReader:
             raise IndexError(f"trajectory index {i} out of range for {self._len} trajectories")
         try:
             return int(self._h5()["trajectories"][f"{i:06d}"].attrs["seed"])
+        except (OSError, KeyError, RuntimeError):
+            raise self._error(f"trajectory {i} is not readable (truncated or corrupt)") from None
+
+    def info(self, i: int) -> TrajectoryInfo:
+        """Trajectory i's state count, size in memory and ground-truth flag, from its metadata alone
+        (no array is read): what a streaming reader plans its reads with."""
+        i = operator.index(i)
+        if not 0 <= i < self._len:
+            raise IndexError(f"trajectory index {i} out of range for {self._len} trajectories")
+        try:
+            g = self._h5()["trajectories"][f"{i:06d}"]
+            missing = [key for _, key, _, _, _ in _ARRAYS if key not in g]
+            if missing:
+                raise self._error(f"trajectory {i} lacks dataset {missing[0]}")
+            params = g["params"].attrs if "params" in g else {}
+            return TrajectoryInfo(num_steps=int(g["mesh/positions"].shape[0]),
+                                  nbytes=sum(int(g[key].nbytes) for _, key, _, _, _ in _ARRAYS),
+                                  has_ground_truth=bool(params.get(GROUND_TRUTH, True)))
         except (OSError, KeyError, RuntimeError):
             raise self._error(f"trajectory {i} is not readable (truncated or corrupt)") from None
 
@@ -447,15 +473,21 @@ def read_trajectories(path: str | os.PathLike, expected_config: dict | None = No
     with a preset that has changed."""
     with SplitReader(path) as reader:
         if expected_config is not None:
-            differ = config_differences(reader.generator_config, expected_config)
-            if differ:
-                shown = ", ".join(f"{k} (file: {_lookup(reader.generator_config, k)!r}, preset: "
-                                  f"{_lookup(expected_config, k)!r})" for k in differ[:6])
-                raise reader._error(
-                    f"generated with another configuration than the preset asks for: {shown}"
-                    f"{' and more' if len(differ) > 6 else ''}. Regenerate it (python -m ggns generate --config "
-                    f"<preset> --overwrite) or point the data module at the matching preset")
+            check_config(reader, expected_config)
         return list(reader)
+
+
+def check_config(reader: SplitReader, expected_config: dict) -> None:
+    """Refuse (DatasetError naming the file and the differing keys) a split file generated with another
+    scene, solver or sensor configuration than `expected_config` (`read_trajectories`, the streaming reader)."""
+    differ = config_differences(reader.generator_config, expected_config)
+    if differ:
+        shown = ", ".join(f"{k} (file: {_lookup(reader.generator_config, k)!r}, preset: "
+                          f"{_lookup(expected_config, k)!r})" for k in differ[:6])
+        raise reader._error(
+            f"generated with another configuration than the preset asks for: {shown}"
+            f"{' and more' if len(differ) > 6 else ''}. Regenerate it (python -m ggns generate --config "
+            f"<preset> --overwrite) or point the data module at the matching preset")
 
 
 def _lookup(config: dict, dotted: str):

@@ -207,11 +207,13 @@ def _streamed_fit(preset: Path, root: Path, budget: int, crash: int | None = Non
     the model."""
     from pytorch_lightning.callbacks import ModelCheckpoint
 
+    from ggns.models.random_state import RandomState
     from ggns.models.simulators import GGNS
 
     pl.seed_everything(0, verbose=False)
     model = make(GGNS, latent=8, blocks=1, statistics_batches=2)
-    callbacks = [ModelCheckpoint(dirpath=root, filename="last", every_n_train_steps=3, enable_version_counter=False)]
+    callbacks = [ModelCheckpoint(dirpath=root, filename="last", every_n_train_steps=3, enable_version_counter=False),
+                 RandomState()]  # the noise draws resume too
     trainer = quiet_trainer(root, max_epochs=2, limit_train_batches=1.0, enable_checkpointing=True,
                             callbacks=callbacks + ([_Crash(crash)] if crash is not None else []))
     trainer.fit(model, _module(preset, budget=budget), ckpt_path=resume)

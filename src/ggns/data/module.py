@@ -39,12 +39,14 @@ from pathlib import Path
 
 import pytorch_lightning as pl
 import torch
-from torch.utils.data import DataLoader, Dataset, DistributedSampler
+from torch.utils.data import DataLoader, Dataset
 
 from ..config import load_config
 from ..batch import TrajectoryBatch
 from .generate import generate, read_shards, shard_files, split_path
+from .sampling import EpochSampler
 from .schema import read_trajectories
+from .stream import BlockSampler, StreamedSplit, StreamingWindowDataset, parse_bytes
 from ..trajectory import Trajectory
 
 from . import DEFAULT_DATASET, SPLITS  # noqa: F401 (SPLITS: importable from here as before)
@@ -94,35 +96,6 @@ class TrajectoryDataset(Dataset):
 warnings.filterwarnings("ignore", message="You're resuming from a checkpoint that ended before the epoch ended")
 
 
-class EpochSampler(DistributedSampler):
-    """The training windows' order: epoch e's permutation comes from torch.Generator seeded with
-    seed + e (torch's DistributedSampler), of which rank r of `num_replicas` takes every
-    num_replicas-th index (the epoch padded by repeating its first indices to a multiple of
-    num_replicas, as DistributedSampler does). `start`: indices of this rank to skip in the next
-    iteration only (a fit resumed in the middle of an epoch), `resume` sets it from a global step."""
-
-    def __init__(self, dataset: Dataset, seed: int, num_replicas: int = 1, rank: int = 0):
-        super().__init__(dataset, num_replicas=num_replicas, rank=rank, shuffle=True, seed=seed, drop_last=False)
-        self.start = 0
-
-    def resume(self, batches_done: int, batch_size: int, batches_per_epoch: int) -> None:
-        """Position at the start of the batch after the first `batches_done` of the fit (all epochs)."""
-        if batches_per_epoch < 1:
-            return
-        epoch, done = divmod(batches_done, batches_per_epoch)
-        self.set_epoch(epoch)
-        self.start = done * batch_size
-
-    def epoch_indices(self) -> list[int]:
-        """This rank's indices of the current epoch, all of them."""
-        return list(super().__iter__())
-
-    def __iter__(self):
-        indices = self.epoch_indices()
-        start, self.start = self.start, 0
-        return iter(indices[start:])
-
-
 def collate(trajectories: list[Trajectory]) -> TrajectoryBatch:
     return TrajectoryBatch.from_trajectories(trajectories)
 
@@ -165,7 +138,6 @@ class SimulationDataModule(pl.LightningDataModule):
         self.max_eval_trajectories = max_eval_trajectories
         self.generate_missing = generate_missing
         self.seed = seed
-        from .stream import parse_bytes  # (stream imports EpochSampler from here: imported where used)
 
         self.memory_budget = None if memory_budget is None else parse_bytes(memory_budget)
         self.stream_lanes = stream_lanes
@@ -210,7 +182,6 @@ class SimulationDataModule(pl.LightningDataModule):
         if split not in self._trajectories:
             files, shards = self.files(split)
             if self.streams(split):
-                from .stream import StreamedSplit
 
                 trajs = StreamedSplit(files, self.config, split, shards=shards)
             elif shards:
@@ -268,7 +239,6 @@ class SimulationDataModule(pl.LightningDataModule):
         trajs = self.trajectories(split)
         if isinstance(trajs, list):
             return WindowDataset(trajs, self._window())
-        from .stream import StreamingWindowDataset
 
         return StreamingWindowDataset(trajs, self._window(), cache_bytes)
 
@@ -281,7 +251,6 @@ class SimulationDataModule(pl.LightningDataModule):
         if isinstance(dataset, WindowDataset):
             sampler = EpochSampler(dataset, self._seed(), num_replicas=world, rank=rank)
         else:
-            from .stream import BlockSampler
 
             sampler = BlockSampler(dataset, self._seed(), self.reader_budget(), num_replicas=world, rank=rank,
                                    lanes=self.stream_lanes)

@@ -38,7 +38,7 @@ from torch.utils.data import Dataset
 
 from ..trajectory import Trajectory
 from .generate import check_shard_seed, interleave_shards
-from .module import EpochSampler
+from .sampling import EpochSampler
 from .schema import SplitReader, TrajectoryInfo, check_config
 
 _UNITS = {"": 1, "b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,

@@ -1,0 +1,35 @@
+"""The training windows' order (`EpochSampler`): seeded per epoch, shared among DDP processes, resumable
+from a global step. The in-memory data module uses it as it is; the streamed reader's `BlockSampler`
+(`ggns.data.stream`) orders the same windows in blocks that fit a memory budget on top of it."""
+from __future__ import annotations
+
+from torch.utils.data import Dataset, DistributedSampler
+
+
+class EpochSampler(DistributedSampler):
+    """The training windows' order: epoch e's permutation comes from torch.Generator seeded with
+    seed + e (torch's DistributedSampler), of which rank r of `num_replicas` takes every
+    num_replicas-th index (the epoch padded by repeating its first indices to a multiple of
+    num_replicas, as DistributedSampler does). `start`: indices of this rank to skip in the next
+    iteration only (a fit resumed in the middle of an epoch), `resume` sets it from a global step."""
+
+    def __init__(self, dataset: Dataset, seed: int, num_replicas: int = 1, rank: int = 0):
+        super().__init__(dataset, num_replicas=num_replicas, rank=rank, shuffle=True, seed=seed, drop_last=False)
+        self.start = 0
+
+    def resume(self, batches_done: int, batch_size: int, batches_per_epoch: int) -> None:
+        """Position at the start of the batch after the first `batches_done` of the fit (all epochs)."""
+        if batches_per_epoch < 1:
+            return
+        epoch, done = divmod(batches_done, batches_per_epoch)
+        self.set_epoch(epoch)
+        self.start = done * batch_size
+
+    def epoch_indices(self) -> list[int]:
+        """This rank's indices of the current epoch, all of them."""
+        return list(super().__iter__())
+
+    def __iter__(self):
+        indices = self.epoch_indices()
+        start, self.start = self.start, 0
+        return iter(indices[start:])

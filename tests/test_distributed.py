@@ -66,21 +66,28 @@ def _scalars(run: Path, prefix: str) -> dict[str, dict[int, float]]:
     return out
 
 
-def test_two_ddp_processes_train_as_one_with_twice_the_batch(cli_data, tmp_path):
-    """... and validate as one: the rollout callback's metrics (each process rolls out one of the 2
-    validation trajectories, sums and counts added across processes) and val/loss (synced) equal one
-    process's, so every process selects the same best-* checkpoints."""
+def _one_process_against_two(cli_data, tmp_path, **fit_options) -> tuple[Path, Path, dict]:
+    """Fits of 1 process with batches of 8 and 2 DDP processes with 4 each: (run folder of one, of two, the
+    two-process last.ckpt), after checking that both ran STEPS steps to the same weights (statistics, merged
+    in float64, and weights differ by float summation order only: 1.5e-7 relative here)."""
     for version, processes, batch_size in (("one", 1, 8), ("two", 2, 4)):
         done = _fit(cli_data, tmp_path, version, processes=processes, batch_size=batch_size,
-                    strategy="ddp_find_unused_parameters_true" if processes > 1 else "auto", validate=True)
+                    strategy="ddp_find_unused_parameters_true" if processes > 1 else "auto", **fit_options)
         assert done.returncode == 0, done.stderr[-3000:]
     one, two = tmp_path / "mgn" / "one", tmp_path / "mgn" / "two"
     first, second = (torch.load(run / "checkpoints" / "last.ckpt", weights_only=True) for run in (one, two))
     assert first["global_step"] == second["global_step"] == STEPS
-    assert second["ggns_rng_states"]["cpu"].shape[0] == 2  # every rank's generator, for an exact resume
     for name, value in first["state_dict"].items():
-        # statistics (merged in float64) and weights differ by float summation order only: 1.5e-7 relative here
         torch.testing.assert_close(second["state_dict"][name], value, rtol=1e-4, atol=1e-6, msg=name)
+    return one, two, second
+
+
+def test_two_ddp_processes_train_as_one_with_twice_the_batch(cli_data, tmp_path):
+    """... and validate as one: the rollout callback's metrics (each process rolls out one of the 2
+    validation trajectories, sums and counts added across processes) and val/loss (synced) equal one
+    process's, so every process selects the same best-* checkpoints."""
+    one, two, second = _one_process_against_two(cli_data, tmp_path, validate=True)
+    assert second["ggns_rng_states"]["cpu"].shape[0] == 2  # every rank's generator, for an exact resume
     losses, ddp = _losses(one), _losses(two)
     assert sorted(losses) == sorted(ddp) and len(losses) == STEPS
     for step in losses:
@@ -101,15 +108,7 @@ def test_streamed_two_ddp_processes_train_as_one_with_twice_the_batch(cli_data, 
     in both runs: each process reads only its lane's trajectories, and the 2 processes' batches together are
     the one process's, so the weights and losses are again those of one process."""
     streamed = ("--data.memory_budget", "1", "--data.stream_lanes", "2")
-    for version, processes, batch_size in (("one", 1, 8), ("two", 2, 4)):
-        done = _fit(cli_data, tmp_path, version, processes=processes, batch_size=batch_size,
-                    strategy="ddp_find_unused_parameters_true" if processes > 1 else "auto", extra=streamed)
-        assert done.returncode == 0, done.stderr[-3000:]
-    one, two = tmp_path / "mgn" / "one", tmp_path / "mgn" / "two"
-    first, second = (torch.load(run / "checkpoints" / "last.ckpt", weights_only=True) for run in (one, two))
-    assert first["global_step"] == second["global_step"] == STEPS
-    for name, value in first["state_dict"].items():
-        torch.testing.assert_close(second["state_dict"][name], value, rtol=1e-4, atol=1e-6, msg=name)
+    one, two, _ = _one_process_against_two(cli_data, tmp_path, extra=streamed)
     losses, ddp = _losses(one), _losses(two)
     assert sorted(losses) == sorted(ddp) and len(losses) == STEPS
     for step in losses:

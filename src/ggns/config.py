@@ -81,3 +81,24 @@ def load_config(name: str | Path, overrides: list[str] = (), kind: str = "data")
         cfg = checked_merge(cfg, OmegaConf.to_container(OmegaConf.from_dotlist(list(overrides))),
                             f"the overrides {list(overrides)}")
     return OmegaConf.to_container(OmegaConf.create(cfg), resolve=True)
+
+
+def dataclass_of(cls, value, what: str):
+    """A dataclass `cls` (a model's part, `TrainingNoise`, `LRSchedule`) from itself, a mapping of its fields
+    (a config, a checkpoint's hyperparameters) or None (its defaults); an unknown field raises ValueError
+    naming `what` and the known fields, another type TypeError."""
+    import dataclasses
+    from collections.abc import Mapping
+
+    if value is None:
+        return cls()
+    if isinstance(value, cls):
+        return value
+    if not isinstance(value, Mapping):
+        raise TypeError(f"{what} must be a {cls.__name__} or a mapping of its fields, got {type(value).__name__}")
+    known = [f.name for f in dataclasses.fields(cls)]
+    unknown = sorted(set(value) - set(known))
+    if unknown:
+        raise ValueError(f"{what}: unknown fields {unknown} (known: {known})")
+    return cls(**value)
+

@@ -44,7 +44,7 @@ from torch.utils.data import DataLoader, Dataset
 from ..config import load_config
 from ..batch import TrajectoryBatch
 from .generate import generate, read_shards, shard_files, split_path
-from .sampling import EpochSampler
+from .sampling import EpochSampler, check_windows
 from .schema import read_trajectories
 from .stream import BlockSampler, StreamedSplit, StreamingWindowDataset, parse_bytes
 from ..trajectory import Trajectory
@@ -56,15 +56,7 @@ class WindowDataset(Dataset):
     """Every window of `window` transitions (window + 1 states) of every trajectory."""
 
     def __init__(self, trajectories: list[Trajectory], window: int):
-        if window < 1:
-            raise ValueError(f"window must be >= 1 transitions, got {window}")
-        unknown = [i for i, t in enumerate(trajectories) if not t.has_ground_truth]
-        if unknown:
-            raise ValueError(f"trajectories {unknown[:5]} have no ground truth (built without true_positions): "
-                             f"nothing to train or validate on")
-        short = [i for i, t in enumerate(trajectories) if t.num_steps < window + 1]
-        if short:
-            raise ValueError(f"trajectories {short[:5]} have fewer than window + 1 = {window + 1} states")
+        check_windows(trajectories, window)
         self.trajectories = trajectories
         self.index = [(i, s) for i, t in enumerate(trajectories) for s in range(t.num_steps - window)]
         self.window = window

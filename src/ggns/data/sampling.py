@@ -3,7 +3,24 @@ from a global step. The in-memory data module uses it as it is; the streamed rea
 (`ggns.data.stream`) orders the same windows in blocks that fit a memory budget on top of it."""
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from torch.utils.data import Dataset, DistributedSampler
+
+
+def check_windows(trajectories: Sequence, window: int) -> None:
+    """Refuse what windows of `window` transitions cannot be cut from: a window below 1, trajectories without
+    ground truth, trajectories of fewer than window + 1 states (each item has `has_ground_truth` and
+    `num_steps`: a `Trajectory`, or a streamed split's `TrajectoryInfo`). ValueError naming the first ones."""
+    if window < 1:
+        raise ValueError(f"window must be >= 1 transitions, got {window}")
+    unknown = [i for i, t in enumerate(trajectories) if not t.has_ground_truth]
+    if unknown:
+        raise ValueError(f"trajectories {unknown[:5]} have no ground truth (built without true_positions): "
+                         f"nothing to train or validate on")
+    short = [i for i, t in enumerate(trajectories) if t.num_steps < window + 1]
+    if short:
+        raise ValueError(f"trajectories {short[:5]} have fewer than window + 1 = {window + 1} states")
 
 
 class EpochSampler(DistributedSampler):

@@ -38,7 +38,7 @@ from torch.utils.data import Dataset
 
 from ..trajectory import Trajectory
 from .generate import check_shard_seed, interleave_shards
-from .sampling import EpochSampler
+from .sampling import EpochSampler, check_windows
 from .schema import SplitReader, TrajectoryInfo, check_config
 
 _UNITS = {"": 1, "b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,
@@ -187,16 +187,8 @@ class StreamingWindowDataset(Dataset):
     """
 
     def __init__(self, split: StreamedSplit, window: int, cache_bytes: int):
-        if window < 1:
-            raise ValueError(f"window must be >= 1 transitions, got {window}")
         infos = [split.info(i) for i in range(len(split))]
-        unknown = [i for i, t in enumerate(infos) if not t.has_ground_truth]
-        if unknown:
-            raise ValueError(f"trajectories {unknown[:5]} have no ground truth (built without true_positions): "
-                             f"nothing to train or validate on")
-        short = [i for i, t in enumerate(infos) if t.num_steps < window + 1]
-        if short:
-            raise ValueError(f"trajectories {short[:5]} have fewer than window + 1 = {window + 1} states")
+        check_windows(infos, window)
         self.split, self.window = split, window
         self.nbytes = [t.nbytes for t in infos]
         self.offsets = [0]

@@ -16,12 +16,13 @@ the CLI, continues with the same optimizer and the same lr at the same step.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
+
+from ..config import dataclass_of
 
 
 @dataclass(frozen=True)
@@ -47,19 +48,9 @@ class LRSchedule:
 
     @classmethod
     def of(cls, value: LRSchedule | Mapping | None) -> LRSchedule:
-        """The component from itself, a mapping of its fields or None (the defaults); an unknown field is
-        refused by name."""
-        if value is None:
-            return cls()
-        if isinstance(value, cls):
-            return value
-        if isinstance(value, Mapping):
-            unknown = set(value) - {f.name for f in dataclasses.fields(cls)}
-            if unknown:
-                raise ValueError(f"lr_schedule: unknown fields {sorted(unknown)} (known: "
-                                 f"{[f.name for f in dataclasses.fields(cls)]})")
-            return cls(**value)
-        raise TypeError(f"lr_schedule must be an LRSchedule or a mapping, got {type(value).__name__}")
+        """The part from itself, a mapping of its fields or None (the defaults); an unknown field is
+        refused by name (`ggns.config.dataclass_of`)."""
+        return dataclass_of(cls, value, "lr_schedule")
 
     def at(self, step: int) -> float:
         """The learning rate of optimizer step `step` (0-based)."""

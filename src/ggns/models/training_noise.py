@@ -9,13 +9,14 @@ per graph of the batch, to be added with the same target correction as the paper
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+
+from ..config import dataclass_of
 
 
 @dataclass(frozen=True)
@@ -51,19 +52,9 @@ class TrainingNoise:
 
     @classmethod
     def of(cls, value: TrainingNoise | Mapping | None) -> TrainingNoise:
-        """The component from itself, a mapping of its fields (a config, a checkpoint's hyperparameters) or
-        None (the defaults); an unknown field is refused by name."""
-        if value is None:
-            return cls()
-        if isinstance(value, cls):
-            return value
-        if isinstance(value, Mapping):
-            unknown = set(value) - {f.name for f in dataclasses.fields(cls)}
-            if unknown:
-                raise ValueError(f"training noise: unknown fields {sorted(unknown)} (known: "
-                                 f"{[f.name for f in dataclasses.fields(cls)]})")
-            return cls(**value)
-        raise TypeError(f"training noise must be a TrainingNoise or a mapping, got {type(value).__name__}")
+        """The part from itself, a mapping of its fields or None (the defaults); an unknown field is
+        refused by name (`ggns.config.dataclass_of`)."""
+        return dataclass_of(cls, value, "training noise")
 
     def field_std_at(self, step: int) -> float:
         """The smooth field's std at optimizer step `step` (`field_decay_steps`)."""

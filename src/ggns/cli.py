@@ -161,8 +161,13 @@ class SimulatorCLI(LightningCLI):
 
     def _parse_checkpoint_hparams(self, subcommand: str) -> None:
         """Lightning's `_parse_ckpt_path` on the checkpoint's hyperparameters as this version's init
-        arguments (`upgrade_hparams`), read as data."""
-        hparams = dict(read_checkpoint(self.config[subcommand].ckpt_path).get("hyper_parameters", {}))
+        arguments (`upgrade_hparams`). The checkpoint is read as data (`ggns.checkpoints`), once, before
+        Lightning reads it: a file that would run code or is of another format is refused with the reason
+        rather than a traceback."""
+        path = self.config[subcommand].ckpt_path
+        checkpoint = read_checkpoint(path)
+        check_format(checkpoint, path)
+        hparams = dict(checkpoint.get("hyper_parameters", {}))
         hparams.pop("_instantiator", None)
         if not hparams:
             return
@@ -177,13 +182,10 @@ class SimulatorCLI(LightningCLI):
 
     def _check_pretrained(self, subcommand: str) -> None:
         """`--ckpt_path pretrained:<task>/<model>` (or a shipped file's path): the verified shipped file
-        (`ggns.pretrained.verify`), refused for data of another scene than it was trained on. Any other
-        checkpoint is read as data first (`ggns.checkpoints`), so a file that would run code or is of
-        another format is refused with the reason rather than a traceback."""
+        (`ggns.pretrained.verify`), refused for data of another scene than it was trained on."""
         given = str(self.config[subcommand].ckpt_path)
         name = given.removeprefix(PREFIX) if given.startswith(PREFIX) else shipped_name(given)
         if name is None:
-            check_format(read_checkpoint(given), given)  # refused with the reason, before Lightning reads it
             return
         self.config[subcommand].ckpt_path = str(checkpoint_path(name))
         data = self.config[subcommand].get("data") or {}

@@ -49,6 +49,11 @@ _ROOT_ATTRS = ("scene", "split", "dim", "num_trajectories", "generator_config", 
 _PARAM_TYPES = (bool, int, float, str, np.bool_, np.integer, np.floating)
 
 
+def trajectory_nbytes(traj: Trajectory) -> int:
+    """The size of a trajectory's stored arrays in memory (the arrays of the format, `_ARRAYS`)."""
+    return sum(int(getattr(traj, name).nbytes) for name, _, _, _, _ in _ARRAYS)
+
+
 class DatasetError(ValueError):
     """A dataset file (or a trajectory to be written into one) violates the format."""
 

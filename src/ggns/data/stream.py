@@ -39,7 +39,7 @@ from torch.utils.data import Dataset
 from ..trajectory import Trajectory
 from .generate import check_shard_seed, interleave_shards
 from .sampling import EpochSampler, check_windows
-from .schema import SplitReader, TrajectoryInfo, check_config
+from .schema import SplitReader, TrajectoryInfo, check_config, trajectory_nbytes
 
 _UNITS = {"": 1, "b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,
           "kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40}
@@ -60,13 +60,6 @@ def parse_bytes(value: str | int) -> int:
     if size < 1:
         raise ValueError(f"memory size must be at least 1 byte, got {value!r}")
     return size
-
-
-def trajectory_nbytes(trajectory: Trajectory) -> int:
-    """The size of a trajectory's arrays in memory."""
-    return sum(int(getattr(trajectory, name).nbytes) for name in (
-        "rest_positions", "cells", "edges", "positions", "fixed", "collider_faces", "collider_positions",
-        "points", "point_offsets"))
 
 
 class StreamedSplit(Sequence):

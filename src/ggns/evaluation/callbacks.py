@@ -7,7 +7,6 @@ checkpoint it evaluated; `RolloutWriter` writes the rollouts of `predict` as a p
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 import warnings
@@ -138,8 +137,8 @@ class TestReport(pl.Callback):
     """Writes a `test`'s metrics beside its logs: test_metrics.md (the table) and test_metrics.json (the
     module's `test_results`: metric -> mean, std, ... over the test trajectories), both naming the
     checkpoint that was evaluated (`selection.checkpoint_info`: path, global step, epoch and, for a
-    best-* checkpoint, the scalar it was selected on; under "checkpoint" in the JSON). A run without a
-    log directory writes them to the working directory. `ggns.cli` adds it to every run that has none."""
+    best-* checkpoint, the scalar it was selected on; under "checkpoint" in the JSON), in `trainer.log_dir`
+    (the logger's folder, else the trainer's default_root_dir). `ggns.cli` adds it to every run that has none."""
 
     def on_test_end(self, trainer: pl.Trainer, pl_module) -> None:
         summary = getattr(pl_module, "test_results", None)

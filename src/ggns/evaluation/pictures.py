@@ -46,7 +46,7 @@ def rollout_series(batch: TrajectoryBatch, models: Mapping[str, object], schedul
     (T entries, None where `schedule` gives none or no model uses points)."""
     if batch.num_graphs != 1:
         raise ValueError(f"rollout_series takes one trajectory, the batch holds {batch.num_graphs}")
-    schedule = parse_schedule(schedule) if isinstance(schedule, str) else schedule
+    schedule = parse_schedule(schedule)
     preds = {series_label(name, model, schedule): _rollout(model, batch, schedule) for name, model in models.items()}
     steps = batch.num_steps
     shown = any(model.uses_points for model in models.values())
@@ -97,7 +97,7 @@ def error_curves(batch: TrajectoryBatch, models: Mapping[str, object],
     """The per-step error curve (`series_errors`) of every model under every schedule, each model
     rolled out once per effective schedule (MGN: `never` once, whatever the schedules):
     {"<name> (<effective schedule>)": float64 [T]}, for `viz.plot_error_over_time`."""
-    schedules = [parse_schedule(s) if isinstance(s, str) else s for s in schedules]
+    schedules = [parse_schedule(s) for s in schedules]
     preds = {series_label(name, model, s): _rollout(model, batch, s)
              for name, model in models.items() for s in effective_schedules(schedules, model.uses_points)}
     return series_errors(batch, preds)

@@ -96,8 +96,11 @@ class FirstM(Schedule):
         return f"first:{self.m}"
 
 
-def parse_schedule(text: str) -> Schedule:
-    """Parse "every:K", "first:M" or "never" (the inverse of `str(schedule)`)."""
+def parse_schedule(text: str | Schedule) -> Schedule:
+    """Parse "every:K", "first:M" or "never" (the inverse of `str(schedule)`); a `Schedule` is returned as it is,
+    so that every function taking either calls this alone."""
+    if isinstance(text, Schedule):
+        return text
     name, sep, arg = text.strip().partition(":")
     if name in ("every", "first") and sep:
         try:
@@ -115,7 +118,7 @@ def parse_schedule(text: str) -> Schedule:
 def effective_schedule(schedule: Schedule | str, uses_points: bool) -> Schedule:
     """The schedule a model really runs: `schedule` for a model with point clouds, `Never()` for one
     without (it never sees a point cloud, whatever the schedule says)."""
-    schedule = parse_schedule(schedule) if isinstance(schedule, str) else schedule
+    schedule = parse_schedule(schedule)
     return schedule if uses_points else Never()
 
 

@@ -69,7 +69,7 @@ LstmState = tuple[Tensor, Tensor] | None
 # the processor layouts: name -> (one edge MLP per edge type, node type encoding)
 PROCESSORS = {"shared": (False, "one_hot"), "per_type": (True, "per_type")}
 
-# init arguments of the simulators before the components: old name -> (component, field) or a converter
+# init arguments of the simulators before the parts: old flat name -> the part's field
 _FLAT_NOISE = {"noise_std": "std", "noise_field_std": "field_std", "noise_field_wavelength": "field_wavelength",
                "noise_field_mixture": "field_mixture", "noise_field_points_only": "field_points_only",
                "noise_field_decay_steps": "field_decay_steps"}
@@ -439,8 +439,7 @@ class GraphSimulator(pl.LightningModule):
             `m10_mse` when computed) -> a [B] tensor, one value per trajectory (MSE in squared
             task-space units).
         """
-        schedules = self.schedules if schedules is None else [parse_schedule(s) if isinstance(s, str) else s
-                                                              for s in schedules]
+        schedules = self.schedules if schedules is None else [parse_schedule(s) for s in schedules]
         one_step = effective_schedule(EveryK(1), self.uses_points)
         with torch.no_grad():
             return evaluate_batch(self.rollout_step(), batch, self.connectivity, schedules,
@@ -458,7 +457,7 @@ class GraphSimulator(pl.LightningModule):
             the predicted mesh positions, [T, sum_b N_b, d] (d = 2 or 3), trajectories concatenated
             along the node axis as in `batch.mesh_batch`; step 0 is S_0.
         """
-        schedule = parse_schedule(schedule) if isinstance(schedule, str) else schedule
+        schedule = parse_schedule(schedule)
         with torch.no_grad():
             return rollout(self.rollout_step(), batch, schedule, self.connectivity, self.with_material)[0]
 

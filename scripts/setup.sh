@@ -20,8 +20,29 @@ fi
 
 [ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
 PIP="$VENV/bin/python -m pip"
+# The installer: uv (`uv pip install`, a drop-in for pip) when it can be had, since it installs from its
+# cache in seconds where pip unpacks every wheel again (the set-up of a fresh clone: docs/setup.md); pip
+# otherwise, or with GGNS_SETUP_PIP=1. uv does not read pip's configuration, so the index, extra indexes,
+# find-links, constraint and certificate that pip would use (its config files and PIP_* variables,
+# `pip config list`) are handed to it, and every index is searched for the best match, as pip does.
+UV_ARGS=()
+if [ "${GGNS_SETUP_PIP:-0}" != 1 ] && $PIP install -q uv >/dev/null 2>&1 && [ -x "$VENV/bin/uv" ]; then
+  UV_ARGS=(--python "$VENV/bin/python" --compile-bytecode --index-strategy unsafe-best-match)
+  while IFS= read -r line; do  # lines like  global.extra-index-url='a b'  or  :env:.find-links='/opt/wheels'
+    key=${line#*.}; key=${key%%=*}; value=${line#*=\'}; value=${value%\'}
+    case $key in
+      index-url|extra-index-url|find-links|constraint)
+        for item in $value; do UV_ARGS+=("--$key" "$item"); done ;;
+      cert) [ -n "${SSL_CERT_FILE:-}" ] || export SSL_CERT_FILE=$value ;;
+    esac
+  done < <($PIP config list 2>/dev/null)
+  echo "[setup] installing with uv"
+fi
+install() {
+  if [ ${#UV_ARGS[@]} -gt 0 ]; then "$VENV/bin/uv" pip install "${UV_ARGS[@]}" "$@"; else $PIP install "$@"; fi
+}
 TORCH=$(grep -E '^torch==' requirements.txt)
-$PIP install -q "$TORCH" ninja wheel "setuptools>=66"
+install -q "$TORCH" ninja wheel "setuptools>=66"
 # torch-cluster: built from source (no wheel on the registry), by default only the extensions ggns
 # calls (scripts/torch_cluster_subset.py; TORCH_CLUSTER_OPS=all builds the whole package). The wheel
 # is kept in $WHEELS, so a later set-up on this machine (a fresh clone, CI) installs it in seconds.
@@ -49,10 +70,10 @@ if ! "$VENV/bin/python" -c "import torch_cluster" 2>/dev/null; then
     mv "$WORK"/wheel/torch_cluster-*.whl "$CACHED"/
     rm -rf "$WORK"
   fi
-  $PIP install -q --no-deps "$CACHED"/torch_cluster-*.whl
+  install -q --no-deps "$CACHED"/torch_cluster-*.whl
 fi
-$PIP install -q -r requirements.txt
-$PIP install -q --no-deps --no-build-isolation -e .
+install -q -r requirements.txt
+install -q --no-deps --no-build-isolation -e .
 "$VENV/bin/python" -c "
 import torch, torch_cluster, torch_geometric, open3d, h5py, pytorch_lightning
 x = torch.rand(20, 3)

@@ -1,0 +1,282 @@
+"""What the point clouds give GGNS on a 3D task, and what it does with them (the cavity's grounding gain):
+python scripts/cavity_diagnosis.py --dataset cavity_cpu [--cameras cavity_cpu_cam2,cavity_cpu_cam1]
+    [--checkpoint CKPT] [--split val --trajectories 9] [--output docs/results/cavity_diagnosis]
+
+Data (no model): per camera preset, points per step, the share of free mesh nodes with a point within a
+voxel (`--near`, default the preset's voxel size) per step, split into the inner and outer wall (nodes
+nearer to / farther from the vertical axis than the mean of their height) and the nodes near a finger
+(within `--finger` of a collider vertex at that step), the mean number of points within the graph's
+mesh-point radius per free node, the RMS per-step motion of the free nodes (all, near a finger, the 10 %
+that move most) against the training noise and the points' spacing (median nearest-neighbour distance).
+
+With a checkpoint, on the first n trajectories of the split:
+- rollouts from S_0 with a point cloud every step and without: the squared error per free node split by
+  direction (along the true vertex normal / tangential) and group (seen at >= half the steps within the
+  voxel, never seen; inner, outer wall; near a finger at that step, far), by material, and over time;
+- the truth handed in: one step from the true state S_t, with and without the point cloud, against
+  predicting no motion (the one-step ratio), for every t;
+- a perturbed truth: one step from S_t + delta (delta per free node and coordinate ~ N(0, sigma^2),
+  sigma = `--sigma`, default the model's training noise), with and without the point cloud; the share
+  of delta's squared size left in the prediction's error (normal and tangential, seen and never seen)
+  after the true step's own motion is taken out: 1.0 keeps the perturbation, 0.0 removes it. A model
+  that reads the points removes the normal part of the seen nodes' perturbation with them and not
+  without them.
+
+Writes <output>/diagnosis.md and diagnosis.json (with the command and the git commit). A diagnostic for
+docs/experiments/cavity_diagnosis.md, not a library command."""
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from ggns.batch import TrajectoryBatch
+from ggns.data.module import SimulationDataModule
+from ggns.evaluation.evaluate import split_trajectories
+from ggns.evaluation.observability import vertex_normals
+from ggns.evaluation.rollout import rollout
+from ggns.evaluation.schedules import EveryK, Never, effective_schedule
+from ggns.geometry import boundary_facets
+from ggns.pretrained import load_model
+from ggns.reports import markdown_table, write_json, write_text
+
+ROOT = Path(__file__).resolve().parents[1]
+GROUPS = ("all", "seen", "never_seen", "inner", "outer", "near_finger", "far")
+
+
+def wall_sides(rest: np.ndarray, fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(inner, outer) [N] bool: a node nearer to the vertical axis through the rest mesh's centre than
+    the mean of the nodes at its height is on the inner wall (every height level of the cavity's tube
+    holds one inner and one outer ring)."""
+    centre = rest[:, :2].mean(axis=0)
+    radial = np.linalg.norm(rest[:, :2] - centre, axis=1)
+    level = np.round(rest[:, 2], 6)
+    inner = np.zeros(len(rest), dtype=bool)
+    for z in np.unique(level):
+        at = level == z
+        inner[at] = radial[at] < radial[at].mean()
+    return inner, ~inner
+
+
+def nearest_distance(queries: np.ndarray, cloud: np.ndarray) -> np.ndarray:
+    if not len(cloud):
+        return np.full(len(queries), np.inf)
+    return cKDTree(cloud).query(queries, k=1)[0]
+
+
+def per_step_groups(traj, near: float, finger: float) -> dict[str, np.ndarray]:
+    """{group: [T, N] bool} for the free nodes (module docstring); seen / never_seen over the whole
+    trajectory (seen at >= half the steps, never at none), the others per step."""
+    steps, nodes = traj.positions.shape[:2]
+    free = ~traj.fixed
+    hit = np.stack([nearest_distance(traj.positions[t], traj.point_cloud(t)) <= near for t in range(steps)])
+    fraction = hit.mean(axis=0)
+    at_finger = np.stack([nearest_distance(traj.positions[t], traj.collider_positions[t]) <= finger
+                          for t in range(steps)])
+    inner, outer = wall_sides(traj.rest_positions, traj.fixed)
+    every = np.ones((steps, nodes), dtype=bool)
+    groups = {"all": every, "seen": every & (fraction >= 0.5), "never_seen": every & (fraction == 0),
+              "inner": every & inner, "outer": every & outer, "near_finger": at_finger, "far": ~at_finger}
+    return {g: m & free for g, m in groups.items()} | {"_hit": hit & free}
+
+
+def data_report(dataset: str, data_dir: str | None, split: str, count: int, near: float | None,
+                finger: float, radius: float, noise: float) -> dict:
+    data = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False)
+    near = float(data.config["sensor"]["voxel_size"]) if near is None else near
+    trajs = data.trajectories(split)[:count]
+    if not trajs:
+        raise ValueError(f"{dataset}/{split} has no trajectories")
+    points, cover, neighbours, spacing = [], {g: [] for g in GROUPS}, [], []
+    motion = {"all": [], "near_finger": []}
+    top = []
+    for traj in trajs:
+        groups = per_step_groups(traj, near, finger)
+        free = ~traj.fixed
+        for t in range(traj.num_steps):
+            cloud = traj.point_cloud(t)
+            points.append(len(cloud))
+            if len(cloud) > 1:
+                spacing.append(float(np.median(cKDTree(cloud).query(cloud, k=2)[0][:, 1])))
+                neighbours.append(float(np.mean([len(n) for n in
+                                                 cKDTree(cloud).query_ball_point(traj.positions[t][free], radius)])))
+            for g in GROUPS:
+                mask = groups[g][t]
+                if mask.any():
+                    cover[g].append(float(groups["_hit"][t][mask].mean()))
+        step = np.linalg.norm(np.diff(traj.positions, axis=0), axis=2)[:, free]  # [T-1, free]
+        motion["all"].append(step.ravel())
+        motion["near_finger"].append(step[groups["near_finger"][1:][:, free]])
+        top.append(np.sort(step.ravel())[-max(1, step.size // 10):])
+
+    def rms(parts):  # per coordinate, as the training noise's std
+        x = np.concatenate(parts) if parts else np.zeros(0)
+        return float(np.sqrt(np.mean(x ** 2) / 3)) if x.size else float("nan")
+
+    report = {"dataset": dataset, "split": split, "trajectories": len(trajs), "near": near, "finger": finger,
+              "mesh_point_radius": radius, "training_noise": noise,
+              "points_per_step_median": float(np.median(points)), "points_per_step_min": int(np.min(points)),
+              "points_per_step_max": int(np.max(points)),
+              "coverage": {g: float(np.mean(v)) if v else float("nan") for g, v in cover.items()},
+              "points_within_radius_per_free_node": float(np.mean(neighbours)),
+              "point_spacing_median": float(np.median(spacing)),
+              "motion_rms_per_coordinate": {"all": rms(motion["all"]), "near_finger": rms(motion["near_finger"]),
+                                            "top_10_percent": rms(top)}}
+    return report
+
+
+def split_error(pred: np.ndarray, true: np.ndarray, facets: np.ndarray, groups: dict, steps: range) -> dict:
+    """{group: {"normal", "tangential", "total"}: squared error per node-step and coordinate}."""
+    sums = {g: np.zeros(3) for g in GROUPS}  # normal, tangential, count
+    for t in steps:
+        error = pred[t] - true[t]
+        normal = (error * vertex_normals(true[t], facets)).sum(axis=1) ** 2
+        tangential = (error ** 2).sum(axis=1) - normal
+        for g in GROUPS:
+            mask = groups[g][t]
+            sums[g] += (normal[mask].sum(), tangential[mask].sum(), mask.sum())
+    return {g: {"normal": s[0] / max(s[2], 1) / 3, "tangential": s[1] / max(s[2], 1) / 3,
+                "total": (s[0] + s[1]) / max(s[2], 1) / 3, "node_steps": int(s[2])} for g, s in sums.items()}
+
+
+def model_report(checkpoint: str, dataset: str, data_dir: str | None, split: str, count: int, near: float | None,
+                 finger: float, sigma: float | None, seed: int) -> dict:
+    model = load_model(checkpoint, map_location="cpu").eval()
+    data = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False)
+    near = float(data.config["sensor"]["voxel_size"]) if near is None else near
+    trajs = data.trajectories(split)[:count]
+    batch = TrajectoryBatch.from_trajectories(trajs)
+    sigma = float(model.noise.std) if sigma is None else sigma
+    step_fn, connectivity = model.rollout_step(), model.connectivity
+    groups = [per_step_groups(traj, near, finger) for traj in trajs]
+    facets = [boundary_facets(traj.cells, traj.rest_positions) for traj in trajs]
+    schedules = {"k1": effective_schedule(EveryK(1), model.uses_points), "never": Never()}
+    out: dict = {"checkpoint": checkpoint, "model": type(model).__name__, "dataset": dataset, "split": split,
+                 "trajectories": len(trajs), "sigma": sigma, "rollout": {}, "by_material": {}, "over_time": {}}
+    with torch.no_grad():
+        for name, schedule in schedules.items():
+            preds = [p[0].numpy().astype(np.float64) for p in
+                     split_trajectories(rollout(step_fn, batch, schedule, connectivity, model.with_material)[0], batch)]
+            per = [split_error(p, tr.positions, f, g, range(1, tr.num_steps))
+                   for p, tr, f, g in zip(preds, trajs, facets, groups)]
+            out["rollout"][name] = {g: {k: float(np.mean([r[g][k] for r in per])) for k in ("normal", "tangential", "total")}
+                                    for g in GROUPS}
+            materials = sorted({tr.poissons_ratio for tr in trajs})
+            out["by_material"][name] = {f"{m:g}": float(np.mean([r["all"]["total"] for r, tr in zip(per, trajs)
+                                                                   if tr.poissons_ratio == m])) for m in materials}
+            curve = np.mean([((p - tr.positions)[:, ~tr.fixed] ** 2).mean(axis=(1, 2)) for p, tr in zip(preds, trajs)],
+                            axis=0)
+            out["over_time"][name] = [float(curve[t]) for t in range(0, len(curve), 10)] + [float(curve[-1])]
+        # one step from the truth, and from the truth perturbed, with and without the point cloud
+        generator = torch.Generator().manual_seed(seed)
+        steps = batch.num_steps - 1
+        free = ~batch.fixed
+        one = {name: np.zeros(2) for name in ("no_motion", *schedules)}
+        kept = {(name, g, part): np.zeros(2) for name in schedules for g in ("all", "seen", "never_seen")
+                for part in ("normal", "tangential")}
+        truth = batch.positions
+        for t in range(steps):
+            delta = torch.randn(truth[t].shape, generator=generator, dtype=truth.dtype) * sigma
+            delta[batch.fixed] = 0
+            motion = truth[t + 1] - truth[t]
+            one["no_motion"] += (float((motion[free] ** 2).sum()), int(free.sum()) * 3)
+            for name, schedule in schedules.items():
+                clean = rollout(step_fn, batch, schedule, connectivity, model.with_material, start=t, steps=1)[0][1]
+                one[name] += (float(((clean - truth[t + 1])[free] ** 2).sum()), int(free.sum()) * 3)
+                moved = rollout(step_fn, batch, schedule, connectivity, model.with_material, start=t, steps=1,
+                                start_positions=truth[t] + delta)[0][1]
+                left = (moved - clean).numpy().astype(np.float64)  # the perturbation's part of the prediction
+                d = delta.numpy().astype(np.float64)
+                offsets = batch.node_offsets
+                for b, traj in enumerate(trajs):
+                    lo, hi = int(offsets[b]), int(offsets[b + 1])
+                    n = vertex_normals(traj.positions[t], facets[b])
+                    for g in ("all", "seen", "never_seen"):
+                        mask = groups[b][g][t]
+                        for part, (x, y) in {"normal": ((left[lo:hi] * n).sum(1) ** 2, (d[lo:hi] * n).sum(1) ** 2),
+                                             "tangential": (((left[lo:hi] ** 2).sum(1) - (left[lo:hi] * n).sum(1) ** 2),
+                                                            ((d[lo:hi] ** 2).sum(1) - (d[lo:hi] * n).sum(1) ** 2))}.items():
+                            kept[(name, g, part)] += (float(x[mask].sum()), float(y[mask].sum()))
+        out["one_step_mse"] = {name: float(s[0] / s[1]) for name, s in one.items()}
+        out["one_step_ratio"] = {name: out["one_step_mse"][name] / out["one_step_mse"]["no_motion"] for name in schedules}
+        out["perturbation_kept"] = {f"{name}/{g}/{part}": float(s[0] / s[1]) if s[1] > 0 else float("nan")
+                                    for (name, g, part), s in kept.items()}
+    return out
+
+
+def markdown(report: dict) -> str:
+    lines = [f"`{report['command']}` at commit {report['commit']}", ""]
+    for data in report["data"]:
+        lines += [f"## Data: {data['dataset']} ({data['split']}, {data['trajectories']} trajectories)", "",
+                  f"points per step: median {data['points_per_step_median']:.0f} ({data['points_per_step_min']}-"
+                  f"{data['points_per_step_max']}); point spacing (median nearest neighbour) "
+                  f"{data['point_spacing_median']:.4f}; points within the mesh-point radius {data['mesh_point_radius']} "
+                  f"per free node {data['points_within_radius_per_free_node']:.2f}", "",
+                  "coverage: share of the free nodes with a point within "
+                  f"{data['near']:.3g} per step, mean over steps", "",
+                  markdown_table(list(GROUPS), [[f"{data['coverage'][g]:.3f}" for g in GROUPS]]), "",
+                  "RMS per-step motion per coordinate of the free nodes: "
+                  + ", ".join(f"{k} {v:.5f}" for k, v in data["motion_rms_per_coordinate"].items())
+                  + f"; training noise {data['training_noise']} is "
+                  f"{data['training_noise'] / data['motion_rms_per_coordinate']['all']:.1f}x the first", ""]
+    model = report.get("model")
+    if model:
+        lines += [f"## Model: {model['model']} from {model['checkpoint']} ({model['split']}, {model['trajectories']} "
+                  "trajectories)", "", "Rollout from S_0: squared error per free node-step and coordinate, normal / tangential", ""]
+        rows = [[name] + [f"{r[g]['normal']:.3g} / {r[g]['tangential']:.3g}" for g in GROUPS]
+                for name, r in model["rollout"].items()]
+        lines += [markdown_table(["schedule", *GROUPS], rows), ""]
+        lines += ["By material (Poisson's ratio), all free nodes: " + "; ".join(
+            f"{name}: " + ", ".join(f"nu={m} {v:.3g}" for m, v in r.items()) for name, r in model["by_material"].items()), ""]
+        lines += ["Over time (every 10th state and the last): " + "; ".join(
+            f"{name}: " + " ".join(f"{v:.2g}" for v in r) for name, r in model["over_time"].items()), ""]
+        lines += ["One step from the true state: MSE " + ", ".join(f"{k} {v:.3g}" for k, v in model["one_step_mse"].items())
+                  + "; ratio to no motion " + ", ".join(f"{k} {v:.2f}" for k, v in model["one_step_ratio"].items()), ""]
+        lines += [f"One step from the true state + N(0, {model['sigma']}^2) per free node: the share of the perturbation's "
+                  "squared size left in the prediction (1: kept, 0: removed)", ""]
+        rows = [[key.replace("/", " ")] + [f"{value:.3f}"] for key, value in model["perturbation_kept"].items()]
+        lines += [markdown_table(["schedule group part", "kept"], rows), ""]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--dataset", default="cavity_cpu")
+    parser.add_argument("--cameras", default="", help="more data presets (other cameras) for the data part, comma-separated")
+    parser.add_argument("--data-dir", default=None, help="folder of --dataset's split files (default: the preset's output)")
+    parser.add_argument("--checkpoint", default=None)
+    parser.add_argument("--split", default="val")
+    parser.add_argument("--trajectories", type=int, default=9)
+    parser.add_argument("--near", type=float, default=None, help="a node is seen with a point this close (default: voxel size)")
+    parser.add_argument("--finger", type=float, default=0.1, help="a node is near a finger within this of a collider vertex")
+    parser.add_argument("--radius", type=float, default=0.05, help="the graph's mesh-point radius")
+    parser.add_argument("--noise", type=float, default=0.01, help="the training noise the motion is compared with")
+    parser.add_argument("--sigma", type=float, default=None, help="the perturbation's std (default: the model's training noise)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--output", default=None)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    report = {"command": shlex.join(["python", "scripts/cavity_diagnosis.py", *sys.argv[1:]]), "commit": commit or "unknown",
+              "data": [data_report(d, args.data_dir if d == args.dataset else None, args.split, args.trajectories,
+                                   args.near, args.finger, args.radius, args.noise)
+                       for d in [args.dataset, *filter(None, args.cameras.split(","))]]}
+    if args.checkpoint:
+        report["model"] = model_report(args.checkpoint, args.dataset, args.data_dir, args.split, args.trajectories,
+                                       args.near, args.finger, args.sigma, args.seed)
+    text = markdown(report)
+    print(text)
+    if args.output:
+        write_text(Path(args.output) / "diagnosis.md", text)
+        write_json(Path(args.output) / "diagnosis.json", report)
+
+
+if __name__ == "__main__":
+    main()

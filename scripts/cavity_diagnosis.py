@@ -15,7 +15,8 @@ With a checkpoint, on the first n trajectories of the split:
   voxel, never seen; inner, outer wall; near a finger at that step, far), by material, and over time;
 - the truth handed in: one step from the true state S_t, with and without the point cloud, against
   predicting no motion (the one-step ratio), for every t;
-- a perturbed truth: one step from S_t + delta (delta per free node and coordinate ~ N(0, sigma^2),
+- a perturbed truth: one step from S_t + delta (delta per free node and coordinate ~ N(0, sigma^2), or a
+  smooth field of that std, `ggns.models.training_noise.smooth_field`, wavelength `--field-wavelength`;
   sigma = `--sigma`, default the model's training noise), with and without the point cloud; the share
   of delta's squared size left in the prediction's error (normal and tangential, seen and never seen)
   after the true step's own motion is taken out: 1.0 keeps the perturbation, 0.0 removes it. A model
@@ -44,11 +45,13 @@ from ggns.evaluation.observability import vertex_normals
 from ggns.evaluation.rollout import rollout
 from ggns.evaluation.schedules import EveryK, Never, effective_schedule
 from ggns.geometry import boundary_facets
+from ggns.models.training_noise import smooth_field
 from ggns.pretrained import load_model
 from ggns.reports import markdown_table, write_json, write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 GROUPS = ("all", "seen", "never_seen", "inner", "outer", "near_finger", "far")
+PERTURBATIONS = ("node", "field")  # per node and coordinate; a smooth field (`smooth_field`)
 
 
 def wall_sides(rest: np.ndarray, fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -147,7 +150,7 @@ def split_error(pred: np.ndarray, true: np.ndarray, facets: np.ndarray, groups: 
 
 
 def model_report(checkpoint: str, dataset: str, data_dir: str | None, split: str, count: int, near: float | None,
-                 finger: float, sigma: float | None, seed: int) -> dict:
+                 finger: float, sigma: float | None, wavelength: float, seed: int) -> dict:
     model = load_model(checkpoint, map_location="cpu").eval()
     data = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False)
     near = float(data.config["sensor"]["voxel_size"]) if near is None else near
@@ -175,39 +178,41 @@ def model_report(checkpoint: str, dataset: str, data_dir: str | None, split: str
                             axis=0)
             out["over_time"][name] = [float(curve[t]) for t in range(0, len(curve), 10)] + [float(curve[-1])]
         # one step from the truth, and from the truth perturbed, with and without the point cloud
-        generator = torch.Generator().manual_seed(seed)
+        torch.manual_seed(seed)
         steps = batch.num_steps - 1
         free = ~batch.fixed
         one = {name: np.zeros(2) for name in ("no_motion", *schedules)}
-        kept = {(name, g, part): np.zeros(2) for name in schedules for g in ("all", "seen", "never_seen")
-                for part in ("normal", "tangential")}
-        truth = batch.positions
+        kept = {(kind, name, g, part): np.zeros(2) for kind in PERTURBATIONS for name in schedules
+                for g in ("all", "seen", "never_seen") for part in ("normal", "tangential")}
+        truth, owner = batch.positions, batch.mesh_batch
         for t in range(steps):
-            delta = torch.randn(truth[t].shape, generator=generator, dtype=truth.dtype) * sigma
-            delta[batch.fixed] = 0
             motion = truth[t + 1] - truth[t]
             one["no_motion"] += (float((motion[free] ** 2).sum()), int(free.sum()) * 3)
+            deltas = {"node": torch.randn(truth[t].shape, dtype=truth.dtype) * sigma,
+                      "field": smooth_field(batch.rest, owner, batch.num_graphs, sigma, wavelength)}
             for name, schedule in schedules.items():
                 clean = rollout(step_fn, batch, schedule, connectivity, model.with_material, start=t, steps=1)[0][1]
                 one[name] += (float(((clean - truth[t + 1])[free] ** 2).sum()), int(free.sum()) * 3)
-                moved = rollout(step_fn, batch, schedule, connectivity, model.with_material, start=t, steps=1,
-                                start_positions=truth[t] + delta)[0][1]
-                left = (moved - clean).numpy().astype(np.float64)  # the perturbation's part of the prediction
-                d = delta.numpy().astype(np.float64)
-                offsets = batch.node_offsets
-                for b, traj in enumerate(trajs):
-                    lo, hi = int(offsets[b]), int(offsets[b + 1])
-                    n = vertex_normals(traj.positions[t], facets[b])
-                    for g in ("all", "seen", "never_seen"):
-                        mask = groups[b][g][t]
-                        for part, (x, y) in {"normal": ((left[lo:hi] * n).sum(1) ** 2, (d[lo:hi] * n).sum(1) ** 2),
-                                             "tangential": (((left[lo:hi] ** 2).sum(1) - (left[lo:hi] * n).sum(1) ** 2),
-                                                            ((d[lo:hi] ** 2).sum(1) - (d[lo:hi] * n).sum(1) ** 2))}.items():
-                            kept[(name, g, part)] += (float(x[mask].sum()), float(y[mask].sum()))
+                for kind, delta in deltas.items():
+                    delta = torch.where(batch.fixed[:, None], torch.zeros_like(delta), delta)
+                    moved = rollout(step_fn, batch, schedule, connectivity, model.with_material, start=t, steps=1,
+                                    start_positions=truth[t] + delta)[0][1]
+                    left = (moved - clean).numpy().astype(np.float64)  # the perturbation's part of the prediction
+                    d = delta.numpy().astype(np.float64)
+                    for b, traj in enumerate(trajs):
+                        lo, hi = int(batch.node_offsets[b]), int(batch.node_offsets[b + 1])
+                        n = vertex_normals(traj.positions[t], facets[b])
+                        x_n, d_n = (left[lo:hi] * n).sum(1) ** 2, (d[lo:hi] * n).sum(1) ** 2
+                        x_t, d_t = (left[lo:hi] ** 2).sum(1) - x_n, (d[lo:hi] ** 2).sum(1) - d_n
+                        for g in ("all", "seen", "never_seen"):
+                            mask = groups[b][g][t]
+                            kept[(kind, name, g, "normal")] += (float(x_n[mask].sum()), float(d_n[mask].sum()))
+                            kept[(kind, name, g, "tangential")] += (float(x_t[mask].sum()), float(d_t[mask].sum()))
         out["one_step_mse"] = {name: float(s[0] / s[1]) for name, s in one.items()}
         out["one_step_ratio"] = {name: out["one_step_mse"][name] / out["one_step_mse"]["no_motion"] for name in schedules}
-        out["perturbation_kept"] = {f"{name}/{g}/{part}": float(s[0] / s[1]) if s[1] > 0 else float("nan")
-                                    for (name, g, part), s in kept.items()}
+        out["field_wavelength"] = wavelength
+        out["perturbation_kept"] = {"/".join(key): float(s[0] / s[1]) if s[1] > 0 else float("nan")
+                                    for key, s in kept.items()}
     return out
 
 
@@ -239,10 +244,14 @@ def markdown(report: dict) -> str:
             f"{name}: " + " ".join(f"{v:.2g}" for v in r) for name, r in model["over_time"].items()), ""]
         lines += ["One step from the true state: MSE " + ", ".join(f"{k} {v:.3g}" for k, v in model["one_step_mse"].items())
                   + "; ratio to no motion " + ", ".join(f"{k} {v:.2f}" for k, v in model["one_step_ratio"].items()), ""]
-        lines += [f"One step from the true state + N(0, {model['sigma']}^2) per free node: the share of the perturbation's "
-                  "squared size left in the prediction (1: kept, 0: removed)", ""]
-        rows = [[key.replace("/", " ")] + [f"{value:.3f}"] for key, value in model["perturbation_kept"].items()]
-        lines += [markdown_table(["schedule group part", "kept"], rows), ""]
+        lines += [f"One step from the true state + a perturbation of std {model['sigma']} per free node and coordinate "
+                  f"(node: independent per node; field: smooth, wavelength {model['field_wavelength']}): the share of "
+                  "the perturbation's squared size left in the prediction (1: kept, 0: removed), normal / tangential", ""]
+        keys = [(kind, name) for kind in PERTURBATIONS for name in model["rollout"]]
+        kept = model["perturbation_kept"]
+        rows = [[f"{kind}, {name}"] + [f"{kept[f'{kind}/{name}/{g}/normal']:.3f} / {kept[f'{kind}/{name}/{g}/tangential']:.3f}"
+                                       for g in ("all", "seen", "never_seen")] for kind, name in keys]
+        lines += [markdown_table(["perturbation, schedule", "all", "seen", "never_seen"], rows), ""]
     return "\n".join(lines) + "\n"
 
 
@@ -259,6 +268,8 @@ def main() -> None:
     parser.add_argument("--radius", type=float, default=0.05, help="the graph's mesh-point radius")
     parser.add_argument("--noise", type=float, default=0.01, help="the training noise the motion is compared with")
     parser.add_argument("--sigma", type=float, default=None, help="the perturbation's std (default: the model's training noise)")
+    parser.add_argument("--field-wavelength", type=float, default=1.5,
+                        help="the smooth perturbation's wavelength (rest-space units)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--output", default=None)
     args = parser.parse_args()
@@ -270,7 +281,7 @@ def main() -> None:
                        for d in [args.dataset, *filter(None, args.cameras.split(","))]]}
     if args.checkpoint:
         report["model"] = model_report(args.checkpoint, args.dataset, args.data_dir, args.split, args.trajectories,
-                                       args.near, args.finger, args.sigma, args.seed)
+                                       args.near, args.finger, args.sigma, args.field_wavelength, args.seed)
     text = markdown(report)
     print(text)
     if args.output:

@@ -13,6 +13,7 @@ With a checkpoint, on the first n trajectories of the split:
 - rollouts from S_0 with a point cloud every step and without: the squared error per free node split by
   direction (along the true vertex normal / tangential) and group (seen at >= half the steps within the
   voxel, never seen; inner, outer wall; near a finger at that step, far), by material, and over time;
+  the same split of the mesh held at S_0 (static: the true displacement);
 - the truth handed in: one step from the true state S_t, with and without the point cloud, against
   predicting no motion (the one-step ratio), for every t;
 - a perturbed truth: one step from S_t + delta (delta per free node and coordinate ~ N(0, sigma^2), or a
@@ -177,6 +178,11 @@ def model_report(checkpoint: str, dataset: str, data_dir: str | None, split: str
             curve = np.mean([((p - tr.positions)[:, ~tr.fixed] ** 2).mean(axis=(1, 2)) for p, tr in zip(preds, trajs)],
                             axis=0)
             out["over_time"][name] = [float(curve[t]) for t in range(0, len(curve), 10)] + [float(curve[-1])]
+        # the mesh held at S_0 (the true displacement itself, split the same way)
+        static = [split_error(np.repeat(tr.positions[:1], tr.num_steps, axis=0), tr.positions, f, g, range(1, tr.num_steps))
+                  for tr, f, g in zip(trajs, facets, groups)]
+        out["rollout"]["static"] = {g: {k: float(np.mean([r[g][k] for r in static])) for k in ("normal", "tangential", "total")}
+                                    for g in GROUPS}
         # one step from the truth, and from the truth perturbed, with and without the point cloud
         torch.manual_seed(seed)
         steps = batch.num_steps - 1
@@ -247,7 +253,7 @@ def markdown(report: dict) -> str:
         lines += [f"One step from the true state + a perturbation of std {model['sigma']} per free node and coordinate "
                   f"(node: independent per node; field: smooth, wavelength {model['field_wavelength']}): the share of "
                   "the perturbation's squared size left in the prediction (1: kept, 0: removed), normal / tangential", ""]
-        keys = [(kind, name) for kind in PERTURBATIONS for name in model["rollout"]]
+        keys = [(kind, name) for kind in PERTURBATIONS for name in model["rollout"] if name != "static"]
         kept = model["perturbation_kept"]
         rows = [[f"{kind}, {name}"] + [f"{kept[f'{kind}/{name}/{g}/normal']:.3f} / {kept[f'{kind}/{name}/{g}/tangential']:.3f}"
                                        for g in ("all", "seen", "never_seen")] for kind, name in keys]

@@ -147,7 +147,8 @@ def test_generate_count_without_split_is_refused(capsys):
 
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCUMENTED = re.compile(r"python -m ggns ((?:generate|import-reference|geometry|bench|sweep|demo|rollout|pretrained)\b[^`\n#|;&)\"']*)")
+DOCUMENTED = re.compile(r"python -m ggns ((?:generate|import-reference|geometry|bench|sweep|demo|rollout|pretrained)\b"
+                        r"(?:[^`\n#|;&)\"']|(?<=\s)\"[^\"`\n,]*\"(?=\s|$))*)")  # a double-quoted argument after a space is one word
 
 
 def documented_command_lines() -> list[tuple[str, str]]:

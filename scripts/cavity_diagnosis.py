@@ -42,7 +42,7 @@ from scipy.spatial import cKDTree
 from ggns.batch import TrajectoryBatch
 from ggns.data.module import SimulationDataModule
 from ggns.evaluation.evaluate import split_trajectories
-from ggns.evaluation.observability import vertex_normals
+from ggns.evaluation.observability import SEEN_AT_LEAST, vertex_normals
 from ggns.evaluation.rollout import rollout
 from ggns.evaluation.schedules import EveryK, Never, effective_schedule
 from ggns.geometry import boundary_facets
@@ -55,7 +55,7 @@ GROUPS = ("all", "seen", "never_seen", "inner", "outer", "near_finger", "far")
 PERTURBATIONS = ("node", "field")  # per node and coordinate; a smooth field (`smooth_field`)
 
 
-def wall_sides(rest: np.ndarray, fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def wall_sides(rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(inner, outer) [N] bool: a node nearer to the vertical axis through the rest mesh's centre than
     the mean of the nodes at its height is on the inner wall (every height level of the cavity's tube
     holds one inner and one outer ring)."""
@@ -84,9 +84,9 @@ def per_step_groups(traj, near: float, finger: float) -> dict[str, np.ndarray]:
     fraction = hit.mean(axis=0)
     at_finger = np.stack([nearest_distance(traj.positions[t], traj.collider_positions[t]) <= finger
                           for t in range(steps)])
-    inner, outer = wall_sides(traj.rest_positions, traj.fixed)
+    inner, outer = wall_sides(traj.rest_positions)
     every = np.ones((steps, nodes), dtype=bool)
-    groups = {"all": every, "seen": every & (fraction >= 0.5), "never_seen": every & (fraction == 0),
+    groups = {"all": every, "seen": every & (fraction >= SEEN_AT_LEAST), "never_seen": every & (fraction == 0),
               "inner": every & inner, "outer": every & outer, "near_finger": at_finger, "far": ~at_finger}
     return {g: m & free for g, m in groups.items()} | {"_hit": hit & free}
 
@@ -108,9 +108,9 @@ def data_report(dataset: str, data_dir: str | None, split: str, count: int, near
             cloud = traj.point_cloud(t)
             points.append(len(cloud))
             if len(cloud) > 1:
-                spacing.append(float(np.median(cKDTree(cloud).query(cloud, k=2)[0][:, 1])))
-                neighbours.append(float(np.mean([len(n) for n in
-                                                 cKDTree(cloud).query_ball_point(traj.positions[t][free], radius)])))
+                tree = cKDTree(cloud)
+                spacing.append(float(np.median(tree.query(cloud, k=2)[0][:, 1])))
+                neighbours.append(float(np.mean([len(n) for n in tree.query_ball_point(traj.positions[t][free], radius)])))
             for g in GROUPS:
                 mask = groups[g][t]
                 if mask.any():

@@ -234,7 +234,7 @@ def test_the_cavity_diagnosis_script_splits_by_wall_and_reports_finite_numbers(t
     spec.loader.exec_module(script)
     rest = trajectories[0].rest_positions
     ring = len(rest) // (2 * len(np.unique(np.round(rest[:, 2], 6))))
-    inner, outer = script.wall_sides(rest, trajectories[0].fixed)
+    inner, outer = script.wall_sides(rest)
     np.testing.assert_array_equal(inner, (np.arange(len(rest)) // ring) % 2 == 0)
     assert not (inner & outer).any() and (inner | outer).all()
 

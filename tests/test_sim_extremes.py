@@ -27,3 +27,33 @@ def test_plate_stays_finite_passive_and_unpenetrated(nu, speed):
     assert energy[-1] > 0  # the collider did push
     # the fixed bottom edge never moved
     assert np.array_equal(traj.positions[:, traj.fixed], np.broadcast_to(traj.rest_positions[traj.fixed], traj.positions[:, traj.fixed].shape))
+
+
+def test_a_frame_whose_step_fails_is_retried_with_smaller_steps_and_recorded():
+    """A plate trajectory of the shipped preset (train trajectory 1,969 of 6,750, found generating 10x the
+    paper's split) whose Newton line search fails at frame 22 with the preset's one substep: the frame is
+    simulated again from its start with 2 substeps, the trajectory finishes within the contact tolerance,
+    and its diagnostics record the substeps of every frame; without retries the failure names the frame."""
+    from ggns.scenes import plate
+    from ggns.sim import run
+    from ggns.sim.solver import SimulationError, SolverConfig
+
+    cfg = load_config("plate")
+    scene, seed, combination = cfg["scene"], 680361923135515639, 25
+    rng = np.random.default_rng(seed)
+    n_nu = len(scene["poissons_ratios"])
+    spec = plate.sample_spec(scene, combination // n_nu, scene["poissons_ratios"][combination % n_nu], rng)
+    rest, cells, fixed = plate.plate_mesh(scene, spec.shape_id)
+    path, faces = plate.collider_path(scene, spec)
+    material = plate.plate_material(scene, spec.poissons_ratio)
+    solver = SolverConfig(dt=scene["frame_dt"], **cfg["solver"])
+    positions, d = run.simulate(rest, cells, fixed, material, solver, [(path, faces)], substeps=1)
+    assert np.isfinite(positions).all() and d["max_penetration"].max() <= cfg["solver"]["contact_tolerance"]
+    assert np.flatnonzero(d[run.REFINED] != 1).tolist() == [22] and d[run.REFINED][22] == 2
+    # frames before the retried one are those of a run that stops there (nothing else changed)
+    before, _ = run.simulate(rest, cells, fixed, material, solver, [(path[:22], faces)], substeps=1)
+    assert np.array_equal(before, positions[:22])
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(run, "REFINEMENTS", 0)
+        with pytest.raises(SimulationError, match="frame 22, substep 1: time step 21: line search failed"):
+            run.simulate(rest, cells, fixed, material, solver, [(path, faces)], substeps=1)

@@ -1,6 +1,8 @@
 """Run the simulator along prescribed collider paths and record every frame."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 
@@ -15,6 +17,12 @@ DIAGNOSTICS = {
     "elastic_energy": "elastic energy at this frame, J",
     "contact_work": "work of the contact forces on the body since the previous frame, J",
 }
+# A frame whose step fails (Newton or its line search does not converge) is simulated again from its start
+# with twice the substeps, up to 2**REFINEMENTS times as many, before the failure is reported. Such a
+# trajectory's diagnostics then hold REFINED: the substeps each frame took (absent where none was retried,
+# so every trajectory that never failed is what it was without retries, bit for bit).
+REFINEMENTS = 3
+REFINED = "substeps"
 
 
 def simulate(
@@ -59,19 +67,40 @@ def simulate(
     positions[0] = X.numpy()
     diag = {name: np.zeros(T) for name in DIAGNOSTICS}
     diag["elastic_energy"][0] = body.energy(x).item()
+    simulators = {substeps: sim}  # per substep count; a retried frame builds the finer one
+    taken = np.full(T, substeps)
     for t in range(1, T):
-        for s in range(1, substeps + 1):
-            w = s / substeps
-            colliders = [Collider((1 - w) * p[t - 1] + w * p[t], f) for p, f in paths]
-            targets = None if prescribed is None else (1 - w) * prescribed[t - 1] + w * prescribed[t]
+        start, multipliers = (x, v), list(sim.multipliers)  # contact multipliers are warm-started over steps
+        n = substeps
+        while True:
+            if n not in simulators:
+                simulators[n] = Simulator(body, torch.as_tensor(fixed), replace(solver, dt=solver.dt * substeps / n))
+            stepper = simulators[n]
+            stepper.multipliers = list(multipliers)
+            (x, v), iterations, work, penetration = start, 0.0, 0.0, 0.0
             try:
-                x, v, info = sim.step(x, v, colliders, fixed_positions=targets)
+                for s in range(1, n + 1):
+                    w = s / n
+                    colliders = [Collider((1 - w) * p[t - 1] + w * p[t], f) for p, f in paths]
+                    targets = None if prescribed is None else (1 - w) * prescribed[t - 1] + w * prescribed[t]
+                    x, v, info = stepper.step(x, v, colliders, fixed_positions=targets)
+                    iterations += info.newton_iterations
+                    work += info.contact_work
+                    penetration = max(penetration, info.max_penetration)
+                break
             except SimulationError as error:
-                raise SimulationError(f"frame {t}, substep {s}: {error}") from None
-            diag["newton_iterations"][t] += info.newton_iterations
-            diag["contact_work"][t] += info.contact_work
-            diag["max_penetration"][t] = max(diag["max_penetration"][t], info.max_penetration)
+                if n >= substeps * 2**REFINEMENTS:
+                    retried = f" (the frame retried with up to {n} substeps)" if n > substeps else ""
+                    raise SimulationError(f"frame {t}, substep {s}: {error}{retried}") from None
+                n *= 2
+        sim.multipliers = stepper.multipliers
+        taken[t] = n
+        diag["newton_iterations"][t] += iterations
+        diag["contact_work"][t] += work
+        diag["max_penetration"][t] = max(diag["max_penetration"][t], penetration)
         positions[t] = x.numpy()
         diag["kinetic_energy"][t] = sim.kinetic_energy(v)
         diag["elastic_energy"][t] = body.energy(x).item()
+    if (taken > substeps).any():
+        diag[REFINED] = taken.astype(np.float64)
     return positions, diag

@@ -115,20 +115,55 @@ def test_streamed_two_ddp_processes_train_as_one_with_twice_the_batch(cli_data, 
         assert ddp[step] == pytest.approx(losses[step], rel=1e-4), step
 
 
-def test_test_and_predict_refuse_more_than_one_process(cli_data, tmp_path):
+def _refused(capsys, data, logs, version: str, command: str, strategy: str) -> str:
+    """`python -m ggns <command>` with 2 CPU processes, in this process: the CLI refuses before
+    Lightning's DDP launcher starts the second one. Returns the error line."""
+    from test_cli import run_cli
+
+    with pytest.raises(SystemExit) as exit_:
+        run_cli([command, "--config", str(CONF_DIR / "plate" / "mgn.yaml"), "--data.dataset", str(data / TINY12),
+                 "--data.data_dir", str(data), "--data.generate_missing", "false",
+                 "--model.init_args.latent", "16", "--model.init_args.blocks", "2",
+                 "--trainer.logger.init_args.save_dir", str(logs), "--trainer.logger.init_args.version", version,
+                 "--trainer.enable_progress_bar", "false", "--trainer.accelerator", "cpu", "--trainer.devices", "2",
+                 "--trainer.strategy", strategy])
+    assert exit_.value.code == 2
+    return capsys.readouterr().err
+
+
+def test_test_and_predict_refuse_more_than_one_process(cli_data, tmp_path, capsys):
     """Lightning's distributed sampler would hand each process part of the split: the metrics and
-    predictions written would be one process's part. Refused on every rank, nothing written."""
-    done = _fit(cli_data, tmp_path, "test", processes=2, batch_size=4, command="test")
-    assert done.returncode == 2 and "test runs in one process" in done.stderr, done.stderr[-2000:]
-    assert not list((tmp_path / "mgn" / "test").glob("test_metrics*"))
+    predictions written would be one process's part. Refused before a process starts, nothing written."""
+    for command in ("test", "predict"):
+        err = _refused(capsys, cli_data, tmp_path, command, command, "ddp_find_unused_parameters_true")
+        assert f"error: {command} runs in one process" in err and "this run has 2 processes" in err, err
+    assert not list((tmp_path / "mgn").rglob("test_metrics*")) and not list((tmp_path / "mgn").rglob("*.h5"))
 
 
-def test_plain_ddp_is_refused_before_it_can_hang(cli_data, tmp_path):
+def test_plain_ddp_is_refused_before_it_can_hang(cli_data, tmp_path, capsys):
     """Without find_unused_parameters, DDP waits forever for the gradient of an edge MLP that a batch
-    without contact did not use (it hung on the plate): refused in setup, on every rank, with the fix."""
-    done = _fit(cli_data, tmp_path, "plain", processes=2, batch_size=4, strategy="ddp")
-    assert done.returncode == 2 and "use --trainer.strategy ddp_find_unused_parameters_true" in done.stderr
+    without contact did not use (it hung on the plate): refused before the processes start, with the fix."""
+    err = _refused(capsys, cli_data, tmp_path, "plain", "fit", "ddp")
+    assert "use --trainer.strategy ddp_find_unused_parameters_true" in err, err
     assert not (tmp_path / "mgn" / "plain" / "checkpoints").exists()
+
+
+def test_each_rank_refuses_too_when_the_trainer_is_built_in_python():
+    """A Trainer built in Python reaches the model's setup on every rank without the CLI: the same refusals
+    there (a real DDP Trainer of 2 CPU processes, constructed, not launched)."""
+    from pytorch_lightning import Trainer
+
+    from ggns.models.simulators import MGN
+
+    model = MGN(latent=8, blocks=1)
+    for strategy, stage, message in (("ddp", "fit", "find_unused_parameters"),
+                                     ("ddp_find_unused_parameters_true", "test", "test runs in one process"),
+                                     ("ddp_find_unused_parameters_true", "predict", "predict runs in one process")):
+        model.trainer = Trainer(accelerator="cpu", devices=2, strategy=strategy, logger=False,
+                                enable_checkpointing=False, enable_progress_bar=False)
+        with pytest.raises(ValueError, match=message):
+            model.setup(stage)
+    model.setup("fit")  # with find_unused_parameters, a fit goes on
 
 
 def test_the_ranks_share_the_epoch_and_a_resumed_epoch_skips_what_was_trained():

@@ -38,7 +38,7 @@ from .config import config_file, load_config
 from .data.module import SimulationDataModule
 from .evaluation.callbacks import TestReport
 from .models.random_state import RandomState
-from .models.simulators import RENAMED_ARGS, GraphSimulator, upgrade_hparams
+from .models.simulators import RENAMED_ARGS, GraphSimulator, refuse_distributed, upgrade_hparams
 from .pretrained import PREFIX, check_data, checkpoint_path, shipped_name
 
 # Evaluation settings, not part of a trained model: with --ckpt_path they still come from the command
@@ -120,6 +120,12 @@ class SimulatorCLI(LightningCLI):
         """The saved config.yaml is the whole merged config: it extends nothing (`base` cleared)."""
         if self.subcommand is not None and "base" in self.config[self.subcommand]:
             self.config[self.subcommand]["base"] = None
+
+    def _run_subcommand(self, subcommand: str) -> None:
+        """Lightning's, after `refuse_distributed`: a run its processes cannot do is refused before the
+        DDP launcher starts them (the model's setup would refuse it again on every rank)."""
+        refuse_distributed(self.trainer, subcommand)
+        super()._run_subcommand(subcommand)
 
     def parse_arguments(self, parser, args) -> None:
         if not isinstance(args, dict):

@@ -523,7 +523,6 @@ def run_baselines(sweep: dict, log=print) -> list[Path]:
     Returns the files written."""
     from ..baselines.scores import (ALPHA_SHAPES, GENERATED_MESH_FILE, STATIC, alpha_shapes_metrics,
                                    generated_mesh_metrics, static_metrics)
-    from ..models.simulators import load_simulator
 
     spec = baseline_spec(sweep)
     written: list[Path] = []
@@ -544,6 +543,8 @@ def run_baselines(sweep: dict, log=print) -> list[Path]:
         metrics = {}
         for part in run.test_parts():  # each schedule with the checkpoint selected on its family
             if part.schedules:
+                from ..models.simulators import load_simulator  # here: Lightning, seconds to import
+
                 model = load_simulator(part.checkpoint, map_location="cpu")
                 metrics.update(generated_mesh_metrics(model, trajectories, part.schedules))
         write_json(path, metrics)

@@ -96,6 +96,24 @@ def upgrade_hparams(hparams: dict) -> dict:
     return out
 
 
+def refuse_distributed(trainer, stage: str) -> None:
+    """Refuse a run that cannot work with `trainer`'s processes, before it starts them when called early
+    (the CLI) or on every rank (the model's setup): a fit under DDP without find_unused_parameters (a batch
+    without contact or without a point cloud leaves the edge MLPs of that edge type without a gradient,
+    and plain DDP then waits for it forever; it hung on the plate), and test or predict in more than one
+    process (Lightning's distributed sampler would give each process part of the split, padded with
+    repeats, and the metrics or predictions written would be one process's part). Raises ValueError."""
+    strategy = trainer.strategy
+    if stage == "fit" and isinstance(strategy, DDPStrategy) and \
+            not getattr(strategy, "_ddp_kwargs", {}).get("find_unused_parameters", False):
+        raise ValueError("DDP needs find_unused_parameters: a batch without contact or point clouds leaves the "
+                         "edge MLPs of that edge type unused, and plain DDP waits for their gradients forever; "
+                         "use --trainer.strategy ddp_find_unused_parameters_true")
+    if stage in ("test", "predict") and trainer.world_size > 1:
+        raise ValueError(f"{stage} runs in one process (it writes metrics and predictions of the whole split); "
+                         f"use --trainer.devices 1 (this run has {trainer.world_size} processes)")
+
+
 class GraphSimulator(pl.LightningModule):
     """Shared base (module docstring).
 
@@ -396,21 +414,10 @@ class GraphSimulator(pl.LightningModule):
         return count
 
     def setup(self, stage: str) -> None:
-        """Refuse DDP that would hang: a batch without contact (or without a point cloud) leaves the edge
-        MLPs of that edge type without a gradient, and DDP without find_unused_parameters then waits
-        forever for it (seen on the plate). Refuse test and predict in more than one process."""
-        strategy = self.trainer.strategy if self._trainer is not None else None
-        if stage == "fit" and isinstance(strategy, DDPStrategy) and \
-                not getattr(strategy, "_ddp_kwargs", {}).get("find_unused_parameters", False):
-            raise ValueError("DDP needs find_unused_parameters: a batch without contact or point clouds leaves the "
-                             "edge MLPs of that edge type unused, and plain DDP waits for their gradients forever; "
-                             "use --trainer.strategy ddp_find_unused_parameters_true")
-        stage = getattr(stage, "value", stage)  # Lightning passes a TrainerFn (a str enum)
-        if stage in ("test", "predict") and self._world_size() > 1:
-            # Lightning's distributed sampler would give each process part of the split (padded with repeats),
-            # and the metrics or predictions written would be one process's part: refused, not half-written
-            raise ValueError(f"{stage} runs in one process (it writes metrics and predictions of the whole split); "
-                             f"use --trainer.devices 1 (this run has {self._world_size()} processes)")
+        """Refuse what `refuse_distributed` names (the CLI refuses it before any process starts; this is
+        for a Trainer built in Python)."""
+        if self._trainer is not None:
+            refuse_distributed(self.trainer, getattr(stage, "value", stage))  # Lightning passes a TrainerFn
 
     def on_fit_start(self) -> None:
         if self.target_normalizer.frozen:  # resumed or fine-tuned: statistics come from the checkpoint

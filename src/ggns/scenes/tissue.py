@@ -18,7 +18,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import trimesh
 
 from ..geometry import box_tet_mesh, cell_edges
 from ..sim.material import Material
@@ -102,6 +101,8 @@ def gripper_path(scene: dict, spec: TissueSpec, start: np.ndarray) -> np.ndarray
 def liver_mesh(scene: dict) -> tuple[np.ndarray, np.ndarray]:
     """The static occluding liver: an ellipsoid (`scene.liver.centre`, `radii`), vertices [V, 3] and
     outward triangles [F, 3]."""
+    import trimesh  # here, not at the top: with networkx and shapely 0.4 s of every process's start, for two shapes
+
     liver = scene["liver"]
     sphere = trimesh.creation.icosphere(subdivisions=int(liver.get("subdivisions", 2)))
     vertices = np.asarray(sphere.vertices) * np.asarray(liver["radii"], dtype=np.float64) + np.asarray(
@@ -112,6 +113,8 @@ def liver_mesh(scene: dict) -> tuple[np.ndarray, np.ndarray]:
 def gripper_shaft(scene: dict, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The gripper's shaft as an occluder: a vertical box of `gripper.shaft_width` x width x
     `gripper.shaft_length` standing on the grasp point. Vertices [8, 3], triangles [12, 3]."""
+    import trimesh
+
     width, length = float(scene["gripper"]["shaft_width"]), float(scene["gripper"]["shaft_length"])
     box = trimesh.creation.box(extents=(width, width, length))
     vertices = np.asarray(box.vertices) + position + np.array([0.0, 0.0, length / 2 + 1e-3])

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import sys
 from pathlib import Path
 
 os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")  # as `python -m ggns` runs (ggns.__main__), before torch allocates
@@ -159,7 +160,8 @@ TINY_MODELS = {"ggns": ("conf/plate/ggns.yaml", "k1"), "mgn": ("conf/plate/mgn.y
 @pytest.fixture(scope="session")
 def tiny_registry(cli_data, tmp_path_factory):
     """Three simulators (tiny/ggns, tiny/mgn, tiny/mgn_m) trained for one epoch on the cli_data preset by
-    `ggns.experiments.pretrain.train` (the real fit command, a subprocess) and packaged by `package`
+    `ggns.experiments.pretrain.train` (the real fit command, a subprocess; the second and third run its
+    command in this process) and packaged by `package`
     into a temporary registry; returns (registry directory, spec)."""
     from ggns import pretrained
     from ggns.config import CONF_DIR
@@ -181,8 +183,16 @@ def tiny_registry(cli_data, tmp_path_factory):
     saved = pretrained.REGISTRY
     pretrained.REGISTRY = registry
     try:
-        for name in spec["entries"]:
-            train(name, spec)
+        for i, name in enumerate(spec["entries"]):
+            if i == 0:  # `ggns pretrained train`'s own subprocess
+                train(name, spec)
+            else:  # the same fit command in this process: one process start fewer each
+                from ggns.__main__ import main
+                from ggns.experiments.pretrain import train_command
+
+                with pytest.MonkeyPatch.context() as patch:
+                    patch.setattr(sys, "argv", ["ggns"])  # LightningCLI warns when it also has one
+                    main(train_command(name, spec)[3:])
             package(name, spec)
     finally:
         pretrained.REGISTRY = saved

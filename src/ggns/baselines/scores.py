@@ -27,13 +27,10 @@ from ..batch import TrajectoryBatch
 from ..evaluation.evaluate import MetricTable, zero_motion_one_step_mse
 from ..evaluation.metrics import batch_iou, rollout_mse, rollout_volume_iou
 from ..evaluation.schedules import parse_schedule
+from . import ALPHA_SHAPES, GENERATED_MESH_FILE, ROWS, STATIC  # noqa: F401 (importable from here as before)
 from .alpha_shapes import trajectory_alpha_iou
 from .initial_mesh import generated_trajectory, initial_mesh_rollout_ious
 
-ALPHA_SHAPES = "alpha_shapes"
-STATIC = "static"
-ROWS = (ALPHA_SHAPES, STATIC)  # baseline rows of their own, <output>/<row>/test_metrics.json
-GENERATED_MESH_FILE = "generated_mesh_metrics.json"
 
 
 def summarize_values(values: dict[str, list[float]]) -> dict[str, dict[str, float]]:

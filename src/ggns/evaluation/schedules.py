@@ -11,8 +11,10 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:  # imported where a mask is made: a sweep's own process reads schedules without torch
+    import torch
 
 
 def _count(value, name: str, minimum: int) -> None:
@@ -34,6 +36,8 @@ class Schedule(ABC):
 
     def mask(self, num_steps: int) -> torch.Tensor:
         """`uses_points` for steps 0..num_steps-1 (num_steps = T-1 predictions), bool [num_steps]."""
+        import torch
+
         _count(num_steps, "num_steps", 0)
         return torch.tensor([self.uses_points(s) for s in range(num_steps)], dtype=torch.bool)
 

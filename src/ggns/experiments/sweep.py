@@ -363,7 +363,7 @@ def slurm_script(sweep: dict, sweep_file: str | Path, partition: str | None = No
 
 def _run_result(run: Run) -> RunResult:
     """A finished run's test metrics, with its generated-mesh baseline metrics when computed."""
-    from ..baselines.scores import GENERATED_MESH_FILE
+    from ..baselines import GENERATED_MESH_FILE
 
     result = load_run(run.metrics_path, run.model, run.seed)
     extra = run.test_dir / GENERATED_MESH_FILE
@@ -447,7 +447,7 @@ def summarize(sweep: dict, log=print) -> Path:
     """Aggregate the finished runs (and the baselines computed by `run_baselines`) into
     <output>/summary.md and summary.csv (mean +- std over seeds; the normalized benefit of
     point clouds when the sweep has `ggns` and `mgn`) plus figures."""
-    from ..baselines.scores import ROWS as BASELINE_ROWS
+    from ..baselines import ROWS as BASELINE_ROWS
     from .figures import write_figures
 
     finished = [r for r in runs_of(sweep) if r.finished]
@@ -521,15 +521,17 @@ def run_baselines(sweep: dict, log=print) -> list[Path]:
     """Compute the missing baseline results of the sweep (see the module docstring): Alpha Shapes
     and the static reference once, and the generated-mesh rollouts for every finished run of the `initial_mesh` models.
     Returns the files written."""
-    from ..baselines.scores import (ALPHA_SHAPES, GENERATED_MESH_FILE, STATIC, alpha_shapes_metrics,
-                                   generated_mesh_metrics, static_metrics)
+    from ..baselines import ALPHA_SHAPES, GENERATED_MESH_FILE, STATIC
 
     spec = baseline_spec(sweep)
     written: list[Path] = []
     trajectories = None
-    for row, compute in ((ALPHA_SHAPES, alpha_shapes_metrics), (STATIC, static_metrics)):
+    for row in (ALPHA_SHAPES, STATIC):
         path = Path(sweep["output"]) / row / "test_metrics.json"
         if spec.get(row) and not path.is_file():
+            from ..baselines import scores  # here: torch and PyG, seconds to import
+
+            compute = scores.alpha_shapes_metrics if row == ALPHA_SHAPES else scores.static_metrics
             trajectories = trajectories if trajectories is not None else _test_trajectories(spec)
             log(f"baseline {row} on {len(trajectories)} test trajectories")
             write_json(path, compute(trajectories))
@@ -543,6 +545,7 @@ def run_baselines(sweep: dict, log=print) -> list[Path]:
         metrics = {}
         for part in run.test_parts():  # each schedule with the checkpoint selected on its family
             if part.schedules:
+                from ..baselines.scores import generated_mesh_metrics
                 from ..models.simulators import load_simulator  # here: Lightning, seconds to import
 
                 model = load_simulator(part.checkpoint, map_location="cpu")

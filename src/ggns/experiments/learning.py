@@ -14,7 +14,7 @@ A learning file (conf/learning/<name>.yaml or a path) holds:
 
 Each variant is one `python -m ggns fit` in its own process (`sweep.Run` builds the command), with
 the budget and validation arguments first, then the base's, then the variant's (later ones win),
-plus a `TrainingClock` callback. A variant is finished when its fit exited cleanly
+plus a `TrainingClock` callback (`ggns.experiments.clock`). A variant is finished when its fit exited cleanly
 (`<run>/learning_finished.json`); finished variants are skipped, an interrupted one resumes from its
 `last.ckpt`. `write_report` then reads the event files and writes <output>/learning.md,
 learning.csv, curves_steps.png and curves_seconds.png.
@@ -29,7 +29,6 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Sequence
 
-import pytorch_lightning as pl
 from omegaconf import OmegaConf
 
 from ..config import resolve_preset
@@ -40,48 +39,15 @@ from .sweep import Run, RunFailed
 FINISHED = "learning_finished.json"
 
 
-class TrainingClock(pl.Callback):
-    """Logs `time/train_seconds` with the training metrics (every `log_every_n_steps`) and at every
-    validation: wall seconds since training started minus the seconds spent in validation loops.
-    The normalization pass and the sanity check (both before training starts) are not counted;
-    checkpoint writing is. The count is saved in checkpoints, so a resumed fit continues it."""
+def __getattr__(name: str):
+    """`ggns.experiments.learning.TrainingClock`, the callback's path in configs written before it moved
+    to `ggns.experiments.clock` (this module imports no Lightning: `bench learning`'s own process
+    starts without it)."""
+    if name == "TrainingClock":
+        from .clock import TrainingClock
 
-    def __init__(self):
-        self.train_seconds = 0.0
-        self._since: float | None = None  # None while not training
-        self._paused = False  # in a validation loop that interrupted training
-
-    def _lap(self) -> None:
-        if self._since is not None:
-            now = time.perf_counter()
-            self.train_seconds += now - self._since
-            self._since = now
-
-    def on_train_start(self, trainer, pl_module) -> None:
-        self._since = time.perf_counter()
-
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        self._lap()
-        pl_module.log(CLOCK, self.train_seconds, on_step=True, on_epoch=False, batch_size=1)
-
-    def on_validation_start(self, trainer, pl_module) -> None:
-        if self._since is not None:
-            self._lap()
-            self._since, self._paused = None, True
-
-    def on_validation_epoch_end(self, trainer, pl_module) -> None:
-        if not trainer.sanity_checking:
-            pl_module.log(CLOCK, self.train_seconds, batch_size=1)
-
-    def on_validation_end(self, trainer, pl_module) -> None:
-        if self._paused:
-            self._since, self._paused = time.perf_counter(), False
-
-    def state_dict(self) -> dict:
-        return {"train_seconds": self.train_seconds}
-
-    def load_state_dict(self, state_dict: dict) -> None:
-        self.train_seconds = float(state_dict["train_seconds"])
+        return TrainingClock
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 # ---- the variants ---------------------------------------------------------------------------------
@@ -123,7 +89,7 @@ def variant_runs(spec: dict) -> list[Run]:
     budget = ["--trainer.max_time", max_time(spec["minutes"]), "--trainer.max_epochs", "-1",
               "--trainer.val_check_interval", str(int(spec["val_every"])),
               "--trainer.check_val_every_n_epoch", "null",
-              f"--trainer.callbacks+={TrainingClock.__module__}.{TrainingClock.__name__}"]
+              "--trainer.callbacks+=ggns.experiments.clock.TrainingClock"]
     base = [str(a) for a in spec["base"].get("args", [])]
     return [Run(name, int(spec.get("seed", 0)), str(spec["base"]["config"]),
                 tuple(budget + base + [str(a) for a in args]), Path(spec["output"]))

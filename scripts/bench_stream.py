@@ -12,6 +12,9 @@ batches (reads and collation, no model; epoch 1's order).
     python scripts/bench_stream.py --data data/plate_small --budget 4MB --steps 150 --repeats 3 \\
         --output docs/results/stream/plate_small
 
+`--data` takes several dataset directories (e.g. the paper-size split and 10x it): every repeat runs
+each directory with each of `--readers`, alternated, so that a slower period of the machine hits all.
+
 writes <output>/raw.csv (one row per run), summary.json (medians per reader), command.txt (the command,
 the git commit, the machine) and prints the summary.
 """
@@ -31,7 +34,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-FIELDS = ["reader", "repeat", "peak_rss_mb", "rss_before_fit_mb", "steps_per_s", "loader_windows_per_s", "steps",
+FIELDS = ["data", "reader", "repeat", "peak_rss_mb", "rss_before_fit_mb", "steps_per_s", "loader_windows_per_s", "steps",
           "split_mb_on_disk",
           "trajectories", "cache_reads", "cache_peak_mb", "budget_bytes"]
 
@@ -94,9 +97,21 @@ def _git_commit() -> str:
     return head + (" (with uncommitted changes)" if dirty else "")
 
 
+def _in_data(args: list[str], i: int) -> bool:
+    """Whether args[i] is one of the values following `--data` (up to the next option)."""
+    if args[i].startswith("--"):
+        return False
+    j = i
+    while j > 0 and not args[j - 1].startswith("--"):
+        j -= 1
+    return j > 0 and args[j - 1] == "--data"
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", required=True, help="dataset directory (train.h5 or train shard files)")
+    parser.add_argument("--data", required=True, nargs="+",
+                        help="dataset directories (train.h5 or train shard files), each run with each reader")
+    parser.add_argument("--readers", default="memory,stream", help="comma-separated: memory, stream")
     parser.add_argument("--dataset", default="plate_small", help="data preset the files were made with")
     parser.add_argument("--budget", default="4MB", help="memory_budget of the streamed reader")
     parser.add_argument("--steps", type=int, default=150)
@@ -108,22 +123,30 @@ def main(argv=None) -> None:
     parser.add_argument("--case", choices=["memory", "stream"], help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.case:
+        (args.data,) = args.data
         print(json.dumps(run_case(args)))
         return
+    readers = [r.strip() for r in args.readers.split(",") if r.strip()]
+    if not readers or set(readers) - {"memory", "stream"}:
+        parser.error(f"--readers: memory and/or stream, got {args.readers!r}")
     rows = []
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT / "src")}
+    given = list(argv if argv is not None else sys.argv[1:])
+    common = [a for i, a in enumerate(given) if a != "--data" and not (i > 0 and _in_data(given, i))]
     for repeat in range(args.repeats):
-        for reader in ("memory", "stream"):  # alternated, so that a slower period of the machine hits both
-            done = subprocess.run([sys.executable, __file__, *(argv if argv is not None else sys.argv[1:]),
-                                   "--case", reader], cwd=ROOT, env=env, capture_output=True, text=True)
-            if done.returncode:
-                sys.exit(f"{reader} run failed:\n{done.stderr[-3000:]}")
-            row = {"reader": reader, "repeat": repeat, **json.loads(done.stdout.strip().splitlines()[-1])}
-            print(row, flush=True)
-            rows.append(row)
-    summary = {reader: {key: statistics.median(r[key] for r in rows if r["reader"] == reader)
-                        for key in ("peak_rss_mb", "rss_before_fit_mb", "steps_per_s", "loader_windows_per_s")}
-               for reader in ("memory", "stream")}
+        for data in args.data:
+            for reader in readers:  # alternated, so that a slower period of the machine hits every case
+                done = subprocess.run([sys.executable, __file__, *common, "--data", data, "--case", reader], cwd=ROOT,
+                                      env=env, capture_output=True, text=True)
+                if done.returncode:
+                    sys.exit(f"{data} {reader} run failed:\n{done.stderr[-3000:]}")
+                row = {"data": data, "reader": reader, "repeat": repeat,
+                       **json.loads(done.stdout.strip().splitlines()[-1])}
+                print(row, flush=True)
+                rows.append(row)
+    summary = {f"{data} {reader}": {key: statistics.median(r[key] for r in rows if (r["data"], r["reader"]) == (data, reader))
+                                    for key in ("peak_rss_mb", "rss_before_fit_mb", "steps_per_s", "loader_windows_per_s")}
+               for data in args.data for reader in readers}
     print(json.dumps(summary, indent=2))
     if args.output:
         out = Path(args.output)
@@ -136,7 +159,7 @@ def main(argv=None) -> None:
         command = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(__file__, ROOT), *sys.argv[1:]])
         (out / "command.txt").write_text(
             f"{command}\ngit commit: {_git_commit()}\nmachine: {platform.machine()}, {os.cpu_count()} cores "
-            f"(shared), {platform.python_version()}, OMP_NUM_THREADS=1, nice -n 10\n"
+            f"(shared), {platform.python_version()}, OMP_NUM_THREADS=1, niceness {os.nice(0)}\n"
             f"date: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}\n")
 
 

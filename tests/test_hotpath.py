@@ -232,3 +232,23 @@ def test_an_interrupted_ab_run_is_summarized_from_its_complete_rounds():
     assert row["speed-up (median of rounds)"] == pytest.approx((2.0 + 3.0) / 2)
     with pytest.raises(ValueError, match="no complete round"):
         raw_from_log(log.splitlines()[-1])
+
+
+def test_the_import_probe_times_a_fresh_import_and_the_sweep_processes_import_no_torch():
+    """`bench ab --probe "import MODULE"` times an import in a fresh process; a sweep's and bench learning's
+    own processes (which only start fits and tests) import neither torch nor Lightning, nor does reading
+    a sweep's results without baselines."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from ggns.bench.ab import run_probe
+
+    src = Path(__file__).resolve().parents[1] / "src"
+    result = run_probe(src, "import ggns.experiments.sweep", threads=1)
+    assert result["probe"] == "import ggns.experiments.sweep" and result["ms"] > 0
+    check = ("import sys, ggns.experiments.sweep, ggns.experiments.learning, ggns.baselines, ggns.commands; "
+             "heavy = sorted(m for m in ('torch', 'pytorch_lightning', 'torch_geometric') if m in sys.modules); "
+             "print(heavy); assert not heavy")
+    done = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout + done.stderr

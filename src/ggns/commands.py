@@ -597,8 +597,9 @@ def bench_ab(baseline: str, probe: Sequence[str] | None = None, rounds: int = 5,
     Args:
         baseline: a commit of this repository (checked out into a temporary worktree) or a checkout's path
         probe: probes as "train MODEL LATENT BLOCKS BATCH", "rollout MODEL LATENT BLOCKS TRAJECTORIES SCHEDULE
-            [static]", "fit MODEL LATENT BLOCKS BATCH" or "ops train|rollout MODEL LATENT BLOCKS SIZE" (operators
-            per step; default: the demo's and the paper-size models' times)
+            [static]", "fit MODEL LATENT BLOCKS BATCH", "ops train|rollout MODEL LATENT BLOCKS SIZE" (operators
+            per step) or "import MODULE" (ms to import it in a fresh process; default: the demo's and the
+            paper-size models' times)
         rounds: rounds of every probe on both trees (medians over rounds are reported)
         candidate: the tree measured against the baseline (default: this checkout)
         output_dir: write ab_raw.csv and ab_summary.md here

@@ -7,6 +7,7 @@ models, `window_loss`, the rollout engine, a Lightning fit). Prints one JSON lin
     python probe.py rollout MODEL LATENT BLOCKS TRAJECTORIES SCHEDULE [static]   ms per rollout step
     python probe.py fit    MODEL LATENT BLOCKS BATCH [STEPS]          Lightning fit steps/s
     python probe.py ops    train|rollout MODEL LATENT BLOCKS SIZE [SCHEDULE]  operators per step (torch.profiler)
+    python probe.py import MODULE                                    ms to import MODULE in this fresh process
 
 `static`: roll out with the model's static step where its tree has one (`GraphSimulator.rollout_step`),
 else its plain step. The device is GGNS_PROBE_DEVICE (default cpu). Data: plate_small (generated
@@ -158,10 +159,21 @@ def ops(step: str, model_name: str, latent: int, blocks: int, size: int, schedul
     return {"ops": len(leaves) / count}
 
 
+def import_module(module: str) -> dict:
+    """Milliseconds to import `module` (with all it imports) in this process, which has imported nothing of
+    ggns, torch or Lightning before: the part of a command's start-up that a source tree decides (the
+    process's own start, the same for both trees, is not counted)."""
+    import importlib
+
+    start = time.perf_counter()
+    importlib.import_module(module)
+    return {"ms": (time.perf_counter() - start) * 1e3}
+
+
 def main(argv: list[str]) -> None:
     kind, *rest = argv
     numbers = [int(v) if v.isdigit() else v for v in rest]
-    result = {"train": train, "rollout": rollout, "fit": fit, "ops": ops}[kind](*numbers)
+    result = {"train": train, "rollout": rollout, "fit": fit, "ops": ops, "import": import_module}[kind](*numbers)
     print(json.dumps({"probe": " ".join(argv), **result}))
 
 

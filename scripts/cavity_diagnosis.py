@@ -42,7 +42,7 @@ from scipy.spatial import cKDTree
 from ggns.batch import TrajectoryBatch
 from ggns.data.module import SimulationDataModule
 from ggns.evaluation.evaluate import split_trajectories
-from ggns.evaluation.observability import SEEN_AT_LEAST, vertex_normals
+from ggns.evaluation.observability import SEEN_AT_LEAST, normal_tangential, vertex_normals
 from ggns.evaluation.rollout import rollout
 from ggns.evaluation.schedules import EveryK, Never, effective_schedule
 from ggns.geometry import boundary_facets
@@ -140,9 +140,7 @@ def split_error(pred: np.ndarray, true: np.ndarray, facets: np.ndarray, groups: 
     """{group: {"normal", "tangential", "total"}: squared error per node-step and coordinate}."""
     sums = {g: np.zeros(3) for g in GROUPS}  # normal, tangential, count
     for t in steps:
-        error = pred[t] - true[t]
-        normal = (error * vertex_normals(true[t], facets)).sum(axis=1) ** 2
-        tangential = (error ** 2).sum(axis=1) - normal
+        normal, tangential = normal_tangential(pred[t] - true[t], true[t], facets)
         for g in GROUPS:
             mask = groups[g][t]
             sums[g] += (normal[mask].sum(), tangential[mask].sum(), mask.sum())

@@ -104,6 +104,14 @@ def seen_fraction(true, points, point_offsets, radius: float) -> np.ndarray:
     return seen / len(true)
 
 
+def normal_tangential(error: np.ndarray, positions: np.ndarray, facets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A state's error per node split along the surface: (normal, tangential) squared errors [N], the
+    error's square along the node's vertex normal (`vertex_normals` of `positions` [N, d] and the boundary
+    `facets`) and the rest of |error|^2 [N, d]. Meaningful on surface nodes."""
+    normal = (error * vertex_normals(positions, facets)).sum(axis=1) ** 2
+    return normal, (error ** 2).sum(axis=1) - normal
+
+
 def error_shares(pred, true, rest, cells, fixed, points=None, point_offsets=None,
                  radius: float | None = None) -> dict[str, float]:
     """Squared error of the free nodes over the states 1..T-1 of a prediction, split into `PARTS`
@@ -142,10 +150,10 @@ def error_shares(pred, true, rest, cells, fixed, points=None, point_offsets=None
     sums = dict.fromkeys(PARTS, 0.0)
     for t in range(1, len(pred)):
         error = pred[t] - true[t]
-        normal = (error * vertex_normals(true[t], facets)).sum(axis=1)
+        normal, tangential = normal_tangential(error, true[t], facets)
         on, inside = surface & free, ~surface & free
-        sums["surface_normal"] += float((normal[on] ** 2).sum())
-        sums["surface_tangential"] += float(((error[on] ** 2).sum(axis=1) - normal[on] ** 2).sum())
+        sums["surface_normal"] += float(normal[on].sum())
+        sums["surface_tangential"] += float(tangential[on].sum())
         sums["interior"] += float((error[inside] ** 2).sum())
     steps = len(pred) - 1
     count = steps * int(free.sum()) * dim

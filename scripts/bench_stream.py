@@ -97,16 +97,6 @@ def _git_commit() -> str:
     return head + (" (with uncommitted changes)" if dirty else "")
 
 
-def _in_data(args: list[str], i: int) -> bool:
-    """Whether args[i] is one of the values following `--data` (up to the next option)."""
-    if args[i].startswith("--"):
-        return False
-    j = i
-    while j > 0 and not args[j - 1].startswith("--"):
-        j -= 1
-    return j > 0 and args[j - 1] == "--data"
-
-
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", required=True, nargs="+",
@@ -131,12 +121,11 @@ def main(argv=None) -> None:
         parser.error(f"--readers: memory and/or stream, got {args.readers!r}")
     rows = []
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT / "src")}
-    given = list(argv if argv is not None else sys.argv[1:])
-    common = [a for i, a in enumerate(given) if a != "--data" and not (i > 0 and _in_data(given, i))]
+    given = list(argv if argv is not None else sys.argv[1:])  # a later --data replaces the given ones
     for repeat in range(args.repeats):
         for data in args.data:
             for reader in readers:  # alternated, so that a slower period of the machine hits every case
-                done = subprocess.run([sys.executable, __file__, *common, "--data", data, "--case", reader], cwd=ROOT,
+                done = subprocess.run([sys.executable, __file__, *given, "--data", data, "--case", reader], cwd=ROOT,
                                       env=env, capture_output=True, text=True)
                 if done.returncode:
                     sys.exit(f"{data} {reader} run failed:\n{done.stderr[-3000:]}")

@@ -16,7 +16,7 @@ from ggns.config import CONF_DIR, load_config
 from ggns.data.generate import generate
 from ggns.data.module import SimulationDataModule, WindowDataset
 from ggns.data.schema import DatasetError
-from ggns.data.stream import BlockSampler, StreamedSplit, StreamingWindowDataset, parse_bytes
+from ggns.data.stream import METADATA_CACHE, BlockSampler, StreamedSplit, StreamingWindowDataset, parse_bytes
 from conftest import T, make, quiet_trainer
 
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -129,6 +129,21 @@ def test_the_cache_stays_within_its_budget(stream_data):
             assert sum(b.num_graphs for b in loader) == WINDOWS
             assert dataset.cache.reads == COUNT * (epoch + 1)
         assert dataset.cache.peak_count in most and dataset.cache.peak_bytes <= budget and len(dataset.cache) <= max(most)
+
+
+def test_a_streamed_split_keeps_one_file_open_with_a_capped_metadata_cache(stream_data):
+    """What a process keeps of the files does not grow with the split's length: opening the 3 shards reads
+    their metadata and closes them; reads across the shards leave one file open at a time, whose HDF5
+    metadata cache is capped at METADATA_CACHE (HDF5's own default allows 32 MiB)."""
+    split = _module(stream_data["shards"]).trajectories("train")
+    assert len(split.readers) == 3 and not any(r.is_open for r in split.readers)
+    for i in range(COUNT):
+        split[i]
+        assert [r.is_open for r in split.readers] == [k == i % 3 for k in range(3)]
+        config = split.readers[i % 3]._h5().id.get_mdc_config()
+        assert config.max_size == METADATA_CACHE < 2**25
+    assert split.info(5) == split.readers[2].info(1)  # trajectory 5 is shard 2's second
+    assert split[3:6].info(2) == split.info(5) and len(split[3:6]) == 3
 
 
 def test_two_ranks_read_only_their_share(stream_data):

@@ -123,11 +123,17 @@ def shard_files(output: str | Path, split: str) -> list[Path]:
     return [files[i] for i in range(shards)]
 
 
+def check_shard_sizes(sizes: list[int]) -> None:
+    """Refuse (DatasetError) shard sizes that are not those of one split cut into len(sizes) shards
+    (shard i holds the trajectories j with j mod n = i, so the sizes fall by at most one, in order)."""
+    if any(a < b for a, b in zip(sizes, sizes[1:])) or (sizes and sizes[0] - sizes[-1] > 1):
+        raise DatasetError(f"shard sizes {sizes} are not those of one split cut into {len(sizes)} shards")
+
+
 def interleave_shards(shards: list[list]) -> list:
     """The split's items in order from its shards' (trajectory j is item j // n of shard j mod n)."""
     sizes = [len(s) for s in shards]
-    if any(a < b for a, b in zip(sizes, sizes[1:])) or (sizes and sizes[0] - sizes[-1] > 1):
-        raise DatasetError(f"shard sizes {sizes} are not those of one split cut into {len(shards)} shards")
+    check_shard_sizes(sizes)
     return [shards[j % len(shards)][j // len(shards)] for j in range(sum(sizes))]
 
 

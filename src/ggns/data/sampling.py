@@ -47,6 +47,6 @@ class EpochSampler(DistributedSampler):
         return list(super().__iter__())
 
     def __iter__(self):
-        indices = self.epoch_indices()
+        indices = self.epoch_indices()  # a list, or an array (BlockSampler's)
         start, self.start = self.start, 0
-        return iter(indices[start:])
+        return map(int, indices[start:])

@@ -319,6 +319,7 @@ class TrajectoryInfo(NamedTuple):
     num_steps: int  # T, the initial state included
     nbytes: int  # its arrays' size in memory (float64 positions etc., as read)
     has_ground_truth: bool  # Trajectory.has_ground_truth
+    seed: int  # the stored seed (`SplitReader.seed`)
 
 
 class SplitReader:
@@ -327,10 +328,18 @@ class SplitReader:
     Indexable (`reader[i] -> Trajectory`, negative indices allowed) and iterable. Picklable
     for DataLoader workers: the HDF5 handle is not pickled and is reopened lazily in each
     process.
+
+    Args:
+        path: the split (or shard) file.
+        metadata_cache: the most bytes of HDF5's metadata cache for this file (its object headers,
+            B-tree nodes, heaps), or None for HDF5's adaptive default, which grows with the
+            trajectories visited while the file is open (measured: about 50 KB of resident memory per
+            trajectory whose arrays were opened); a streaming reader caps it (docs/streaming.md).
     """
 
-    def __init__(self, path: str | os.PathLike) -> None:
+    def __init__(self, path: str | os.PathLike, metadata_cache: int | None = None) -> None:
         self.path = Path(path)
+        self.metadata_cache = metadata_cache
         self._file: h5py.File | None = None
         self._pid = -1
         if not self.path.exists():
@@ -374,7 +383,17 @@ class SplitReader:
     def _h5(self) -> h5py.File:
         if self._file is None or self._pid != os.getpid():
             self._file, self._pid = h5py.File(self.path, "r"), os.getpid()
+            if self.metadata_cache is not None:
+                cap = self._file.id.get_mdc_config()
+                cap.set_initial_size, cap.initial_size = True, self.metadata_cache // 2
+                cap.min_size, cap.max_size = self.metadata_cache // 4, self.metadata_cache
+                self._file.id.set_mdc_config(cap)
         return self._file
+
+    @property
+    def is_open(self) -> bool:
+        """Whether this process holds the file open."""
+        return self._file is not None and self._pid == os.getpid()
 
     def __len__(self) -> int:
         return self._len
@@ -390,20 +409,21 @@ class SplitReader:
             raise self._error(f"trajectory {i} is not readable (truncated or corrupt)") from None
 
     def info(self, i: int) -> TrajectoryInfo:
-        """Trajectory i's state count, size in memory and ground-truth flag, from its metadata alone
+        """Trajectory i's state count, size in memory, ground-truth flag and seed, from its metadata alone
         (no array is read): what a streaming reader plans its reads with."""
         i = operator.index(i)
         if not 0 <= i < self._len:
             raise IndexError(f"trajectory index {i} out of range for {self._len} trajectories")
         try:
             g = self._h5()["trajectories"][f"{i:06d}"]
-            missing = [key for _, key, _, _, _ in _ARRAYS if key not in g]
+            arrays = {key: g.get(key) for _, key, _, _, _ in _ARRAYS}  # one lookup each
+            missing = [key for key, ds in arrays.items() if ds is None]
             if missing:
                 raise self._error(f"trajectory {i} lacks dataset {missing[0]}")
             params = g["params"].attrs if "params" in g else {}
-            return TrajectoryInfo(num_steps=int(g["mesh/positions"].shape[0]),
-                                  nbytes=sum(int(g[key].nbytes) for _, key, _, _, _ in _ARRAYS),
-                                  has_ground_truth=bool(params.get(GROUND_TRUTH, True)))
+            return TrajectoryInfo(num_steps=int(arrays["mesh/positions"].shape[0]),
+                                  nbytes=sum(int(ds.nbytes) for ds in arrays.values()),
+                                  has_ground_truth=bool(params.get(GROUND_TRUTH, True)), seed=int(g.attrs["seed"]))
         except (OSError, KeyError, RuntimeError):
             raise self._error(f"trajectory {i} is not readable (truncated or corrupt)") from None
 

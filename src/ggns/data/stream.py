@@ -3,9 +3,10 @@
 A `StreamedSplit` is a split's file, or its shard files (`generate --shard i/n`) as they are, seen as a
 sequence of trajectories that are read from HDF5 (h5py, `SplitReader`) only when indexed: one whole
 trajectory per read, in whichever process indexes it (DataLoader workers open their own handles).
-Opening it reads metadata only: the files' roots (a truncated or foreign file is refused, naming it),
-their generator configurations (refused when not the preset's, as `read_trajectories` does) and, for
-shards, every trajectory's stored seed (refused when not the preset's, as `read_shards` does).
+Opening it reads metadata only, one file at a time: the files' roots (a truncated or foreign file is refused,
+naming it), their generator configurations (refused when not the preset's, as `read_trajectories` does),
+every trajectory's state count, array sizes and stored seed (for shards refused when not the preset's, as
+`read_shards` does).
 
 Training windows (`StreamingWindowDataset`) are those of the in-memory `WindowDataset`, with the same
 indices; each window is cut from its trajectory, which a `ResidentCache` keeps while it fits: least
@@ -20,7 +21,11 @@ in the middle of an epoch continues it exactly (`EpochSampler.resume`).
 
 Memory model per reading process (the main one, or each DataLoader worker): the training cache's budget
 (the data module gives each of `num_workers` workers budget / num_workers, so that all together keep at
-most the budget), plus the one validation trajectory being cut into windows, plus the batches in flight.
+most the budget), plus the one validation trajectory being cut into windows, plus the batches in flight,
+plus what grows with the split's length: about 30 bytes a trajectory of metadata and the epoch's order of
+windows (a list of ints, `BlockSampler`). Of the files it keeps at most one open, with HDF5's metadata
+cache capped (`METADATA_CACHE`): left to HDF5's default, an open file's cache kept about 50 KB for every
+trajectory visited, so a split's peak grew with its length (docs/streaming.md).
 Workers get batches in turn, so each of them reads the trajectories of the current block: with w workers,
 each trajectory is read w times per epoch.
 """
@@ -33,14 +38,18 @@ from collections import OrderedDict
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch.utils.data import Dataset
 
 from ..trajectory import Trajectory
-from .generate import check_shard_seed, interleave_shards
+from .generate import check_shard_seed, check_shard_sizes
 from .sampling import EpochSampler, check_windows
 from .schema import SplitReader, TrajectoryInfo, check_config, trajectory_nbytes
 
+# bytes of HDF5 metadata cache per open file of a streamed split (SplitReader.metadata_cache): HDF5's
+# adaptive default kept about 50 KB per trajectory visited; a quarter MiB reads as fast (docs/streaming.md)
+METADATA_CACHE = 2**18
 _UNITS = {"": 1, "b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,
           "kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40}
 
@@ -72,27 +81,40 @@ class StreamedSplit(Sequence):
         split: the split's name (the shards' seed check).
         shards: whether `files` are shards: trajectory j is trajectory j // n of shard j mod n.
 
-    `split[i]` reads and returns trajectory i (validated, `SplitReader`); a slice is a StreamedSplit
-    over those trajectories that reads nothing. `reads` counts the trajectories this process read
-    through this split and its slices.
+    Opening it reads each file's metadata once, a file at a time (closed after it), and keeps of each
+    trajectory only its `TrajectoryInfo` in arrays (about 30 bytes a trajectory, with its index). `split[i]` reads and
+    returns trajectory i (validated, `SplitReader`), with at most one of the files open in this process
+    (another is closed first) and HDF5's metadata cache of an open file capped at `METADATA_CACHE`
+    bytes, so that what this process keeps of the files does not grow with the split's length. A slice
+    is a StreamedSplit over those trajectories that reads nothing. `reads` counts the trajectories this
+    process read through this split and its slices.
     """
 
     def __init__(self, files: list[Path], config: dict | None = None, split: str = "train", shards: bool = False):
         self.files = [Path(f) for f in files]
         if not self.files or (len(self.files) > 1 and not shards):
             raise ValueError(f"StreamedSplit needs one split file or its shard files, got {self.files}")
-        self.readers = [SplitReader(f) for f in self.files]  # refuses a missing, truncated or foreign file by name
-        if config is not None:
-            for reader in self.readers:
-                check_config(reader, config)
+        # refuses a missing, truncated or foreign file by name
+        self.readers = [SplitReader(f, metadata_cache=METADATA_CACHE) for f in self.files]
+        sizes = [len(r) for r in self.readers]
         if shards:
-            self._where = interleave_shards([[(f, k) for k in range(len(r))] for f, r in enumerate(self.readers)])
-            if config is not None:
-                for j, (f, k) in enumerate(self._where):
-                    check_shard_seed(self.files, config, split, j, self.readers[f].seed(k))
-        else:
-            self._where = [(0, k) for k in range(len(self.readers[0]))]
-        self._info: list[TrajectoryInfo | None] = [None] * len(self._where)
+            check_shard_sizes(sizes)
+        total, n = sum(sizes), len(self.readers)
+        self._steps, self._nbytes = np.empty(total, np.int32), np.empty(total, np.int64)
+        self._truth, self._seeds = np.empty(total, np.bool_), np.empty(total, np.int64)
+        for f, reader in enumerate(self.readers):
+            try:
+                if config is not None:
+                    check_config(reader, config)
+                for k in range(len(reader)):
+                    j = k * n + f
+                    info = reader.info(k)
+                    if shards and config is not None:
+                        check_shard_seed(self.files, config, split, j, info.seed)
+                    self._steps[j], self._nbytes[j], self._truth[j], self._seeds[j] = info
+            finally:
+                reader.close()
+        self._index = np.arange(total)
         self._reads = [0]  # shared with slices
 
     @property
@@ -105,23 +127,26 @@ class StreamedSplit(Sequence):
         return self.readers[0].dim
 
     def info(self, i: int) -> TrajectoryInfo:
-        """Trajectory i's state count, size in memory and ground-truth flag, from metadata (kept once read)."""
-        if self._info[i] is None:
-            f, k = self._where[i]
-            self._info[i] = self.readers[f].info(k)
-        return self._info[i]
+        """Trajectory i's state count, size in memory, ground-truth flag and seed (read when the split was opened)."""
+        j = self._index[i]
+        return TrajectoryInfo(int(self._steps[j]), int(self._nbytes[j]), bool(self._truth[j]), int(self._seeds[j]))
 
     def __len__(self) -> int:
-        return len(self._where)
+        return len(self._index)
 
     def __getitem__(self, i):
         if isinstance(i, slice):
             part = copy.copy(self)
-            part._where, part._info = self._where[i], self._info[i]
+            part._index = self._index[i]
             return part
-        f, k = self._where[i]
+        j = int(self._index[i])
+        n = len(self.readers)
+        reader = self.readers[j % n]
+        for other in self.readers:
+            if other is not reader and other.is_open:
+                other.close()
         self._reads[0] += 1
-        return self.readers[f][k]
+        return reader[j // n]
 
     def __iter__(self):
         return (self[i] for i in range(len(self)))
@@ -244,26 +269,27 @@ class BlockSampler(EpochSampler):
         self.total_size = self.lane_length * self.lanes
         self.num_samples = self.total_size // num_replicas
 
-    def lane(self, trajectories: list[int], generator: torch.Generator) -> list[int]:
+    def lane(self, trajectories: list[int], generator: torch.Generator) -> np.ndarray:
         """A lane's windows: its trajectories (in order) in blocks of at most block_bytes, each block's
         windows permuted; padded to lane_length with its last block's windows."""
-        windows, block, size = [], [], 0
-        last: list[int] = []
+        offsets, parts, block, size = self.dataset.offsets, [], [], 0
         for j in trajectories + [None]:
             if block and (j is None or size + self.dataset.nbytes[j] > self.block_bytes):
-                ids = torch.tensor([w for t in block for w in self.dataset.windows(t)], dtype=torch.long)
-                last = ids[torch.randperm(len(ids), generator=generator)].tolist()
-                windows += last
+                ids = np.concatenate([np.arange(offsets[t], offsets[t + 1]) for t in block])
+                parts.append(ids[torch.randperm(len(ids), generator=generator).numpy()])
                 block, size = [], 0
             if j is not None:
                 block.append(j)
                 size += self.dataset.nbytes[j]
+        windows = np.concatenate(parts) if parts else np.empty(0, np.int64)
         pad = self.lane_length - len(windows)
-        return windows + (last * (pad // len(last) + 1))[:pad] if pad > 0 else windows
+        return np.concatenate([windows, np.resize(parts[-1], pad)]) if pad > 0 else windows
 
-    def epoch_indices(self) -> list[int]:
+    def epoch_indices(self) -> np.ndarray:
+        """This rank's indices of the current epoch (an int64 array: 8 bytes a window)."""
         generator = torch.Generator()
         generator.manual_seed(self.seed + self.epoch)
         order = torch.randperm(len(self.dataset.offsets) - 1, generator=generator).tolist()
-        lanes = [self.lane(order[k::self.lanes], generator) for k in range(self.lanes)]
-        return [lanes[p % self.lanes][p // self.lanes] for p in range(self.rank, self.total_size, self.num_replicas)]
+        lanes = np.stack([self.lane(order[k::self.lanes], generator) for k in range(self.lanes)])
+        # position p of the epoch is window p // lanes of lane p mod lanes
+        return lanes.T.reshape(-1)[self.rank:self.total_size:self.num_replicas]

@@ -237,7 +237,7 @@ def test_an_interrupted_ab_run_is_summarized_from_its_complete_rounds():
 def test_the_import_probe_times_a_fresh_import_and_the_sweep_processes_import_no_torch():
     """`bench ab --probe "import MODULE"` times an import in a fresh process; a sweep's and bench learning's
     own processes (which only start fits and tests) import neither torch nor Lightning, nor does reading
-    a sweep's results without baselines."""
+    a sweep's results without baselines, nor writing a run's merged test metrics."""
     import subprocess
     import sys
     from pathlib import Path
@@ -248,6 +248,8 @@ def test_the_import_probe_times_a_fresh_import_and_the_sweep_processes_import_no
     result = run_probe(src, "import ggns.experiments.sweep", threads=1)
     assert result["probe"] == "import ggns.experiments.sweep" and result["ms"] > 0
     check = ("import sys, ggns.experiments.sweep, ggns.experiments.learning, ggns.baselines, ggns.commands; "
+             "from ggns.reports import metrics_markdown; "  # what a sweep writes a run's merged metrics with
+             "assert 'e-01' in metrics_markdown({'mse': {'mean': 0.5, 'std': float('nan'), 'count': 2}}); "
              "heavy = sorted(m for m in ('torch', 'pytorch_lightning', 'torch_geometric') if m in sys.modules); "
              "print(heavy); assert not heavy")
     done = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True)

@@ -1,7 +1,7 @@
 """The writers of every report file the library makes, one per kind (figures: `ggns.viz.save_figure`):
 
-- `markdown_table`: the markdown tables of test metrics, the scale check, sweep summaries, findings,
-  learning tables and the demo's report;
+- `markdown_table`: the markdown tables of test metrics (`metrics_markdown`), the scale check, sweep
+  summaries, findings, learning tables and the demo's report;
 - `write_text`, `write_json`, `write_csv`: files written to a temporary name and renamed into place,
   so an interrupted write leaves the previous file (or none), never a truncated one.
 """
@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
@@ -21,6 +22,15 @@ def markdown_table(header: Sequence, rows: Iterable[Sequence]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def metrics_markdown(results: dict[str, dict[str, float]], title: str | None = None) -> str:
+    """Metric summaries {name: {"mean", "std", "count"}} as a markdown table (mean +- std over trajectories)."""
+    lines = [f"### {title}", ""] if title else []
+    rows = [(name, f"{s['mean']:.4e}", "" if math.isnan(s["std"]) else f"{s['std']:.3e}", s["count"])
+            for name, s in results.items()]
+    lines.append(markdown_table(["metric", "mean", "std over trajectories", "trajectories"], rows))
+    return "\n".join(lines) + "\n"
 
 
 def write_text(path: str | Path, text: str) -> Path:

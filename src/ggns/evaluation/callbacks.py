@@ -23,9 +23,9 @@ from ..batch import TrajectoryBatch
 from ..checkpoints import sha256
 from ..data.predictions import Predictions, write_predictions
 from ..data.schema import SplitReader
-from ..reports import write_json, write_text
+from ..reports import metrics_markdown, write_json, write_text
 from ..viz import figure_to_image
-from .evaluate import metrics_markdown, zero_motion_one_step_mse
+from .evaluate import zero_motion_one_step_mse
 from .pictures import rollout_picture
 from .schedules import EveryK, Never, Schedule, effective_schedules, parse_schedule
 from .selection import CHECKPOINT_KEY, M10, checkpoint_info, describe, val_metric

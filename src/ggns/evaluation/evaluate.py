@@ -18,7 +18,6 @@ their known positions and contribute zero error).
 """
 from __future__ import annotations
 
-import math
 from typing import Iterable
 
 import torch
@@ -26,7 +25,6 @@ from torch import Tensor
 
 from ..graphs.connectivity import Connectivity
 from ..batch import TrajectoryBatch
-from ..reports import markdown_table
 from .metrics import (batch_iou, m_plus_10_mse, m_plus_10_pooled_mse, m_plus_10_starts, one_step_mse, rollout_mse,
                       rollout_volume_iou)
 from .rollout import StepFn, m_plus_10_rollouts, one_step_predictions, rollout
@@ -156,10 +154,3 @@ class MetricTable:
         return {name: s["mean"] for name, s in self.summary().items()}
 
 
-def metrics_markdown(results: dict[str, dict[str, float]], title: str | None = None) -> str:
-    """Metric summaries {name: {"mean", "std", "count"}} as a markdown table (mean +- std over trajectories)."""
-    lines = [f"### {title}", ""] if title else []
-    rows = [(name, f"{s['mean']:.4e}", "" if math.isnan(s["std"]) else f"{s['std']:.3e}", s["count"])
-            for name, s in results.items()]
-    lines.append(markdown_table(["metric", "mean", "std over trajectories", "trajectories"], rows))
-    return "\n".join(lines) + "\n"

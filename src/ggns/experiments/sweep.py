@@ -55,7 +55,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from ..reports import markdown_table, write_json, write_text
+from ..reports import markdown_table, metrics_markdown, write_json, write_text
 from ..config import load_config, resolve_preset
 from ..data import DEFAULT_DATASET, SPLITS, split_path
 from ..evaluation.schedules import parse_schedule
@@ -283,8 +283,6 @@ def execute(run: Run, threads: int | None = None, log=print) -> Run:
             call(f"test ({', '.join(part.families)} with {part.checkpoint.name})", run.test_command(part))
             if not part.finished:
                 raise RuntimeError(f"test of {run.model} seed {run.seed} wrote no {part.metrics_path}")
-    from ..evaluation.evaluate import metrics_markdown
-
     merged = run.merge_tests()
     metrics = {name: value for name, value in merged.items() if name != CHECKPOINTS_KEY}
     write_text(run.metrics_path.with_suffix(".md"),

@@ -48,7 +48,8 @@ from torch import Tensor, nn
 from torch_geometric.data import HeteroData
 
 from ..evaluation.capture import StaticStep
-from ..evaluation.evaluate import MetricTable, evaluate_batch, metrics_markdown
+from ..evaluation.evaluate import MetricTable, evaluate_batch
+from ..reports import metrics_markdown
 from ..evaluation.rollout import rollout
 from ..evaluation.schedules import EveryK, Schedule, effective_schedule, parse_schedule
 from ..batch import TrajectoryBatch

@@ -12,7 +12,7 @@
 # Steps, most important first, each bounded by what is left of DEADLINE seconds (default 450) and
 # skipped when under 20 s remain: environment, packages, torch-cluster, tests/test_cuda.py, bench ab
 # (this tree against the baseline on the GPU: a training iteration and rollout steps), bench profile,
-# bench learning (conf/learning/plate_gpu.yaml, 1 minute per variant), bench precision. Writes what it
+# bench learning (experiments/speed/learning/plate_gpu.yaml, 1 minute per variant), bench precision. Writes what it
 # saw under OUT (default /tmp/gpu_check); the exit status is the number of failed steps.
 #   bash scripts/gpu_check.sh [KIT] [OUT]
 set -uo pipefail

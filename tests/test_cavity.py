@@ -215,7 +215,7 @@ def test_fit_test_and_export_through_the_cli_on_tiny_cavity(tiny, tmp_path, mode
 
 
 def test_the_cavity_diagnosis_script_splits_by_wall_and_reports_finite_numbers(tiny, tmp_path):
-    """scripts/cavity_diagnosis.py (docs/experiments/cavity_diagnosis.md) on an untrained GGNS: the inner
+    """experiments/cavity_diagnosis/cavity_diagnosis.py (docs/experiments/cavity_diagnosis.md) on an untrained GGNS: the inner
     wall it finds from the geometry is the mesh's own numbering's (level j, wall k: ring 2 j + k, k = 0
     inner), predicting no motion costs the true motion's mean square, and every reported number is finite."""
     import importlib.util
@@ -229,7 +229,7 @@ def test_the_cavity_diagnosis_script_splits_by_wall_and_reports_finite_numbers(t
     ROOT = Path(__file__).resolve().parents[1]
 
     config, trajectories = tiny
-    spec = importlib.util.spec_from_file_location("cavity_diagnosis", ROOT / "scripts" / "cavity_diagnosis.py")
+    spec = importlib.util.spec_from_file_location("cavity_diagnosis", ROOT / "experiments" / "cavity_diagnosis" / "cavity_diagnosis.py")
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     rest = trajectories[0].rest_positions

@@ -35,3 +35,20 @@ def test_unknown_keys_compares_mappings_only():
     known = {"a": {"b": 1, "c": [1, 2]}, "d": 2}
     assert unknown_keys(known, {"a": {"c": [3]}, "d": {"x": 1}}) == []  # a list or a scalar replaced whole
     assert unknown_keys(known, {"a": {"bb": 1}}) == ["a.bb (did you mean a.b?)"]
+
+
+def test_experiment_presets_are_found_by_name_after_the_shipped_ones_and_no_name_is_taken_twice():
+    """The experiments' sweeps and learning files (experiments/<experiment>/<kind>/) resolve by name in a
+    checkout as conf/'s do; conf/ comes first; a name is one preset per kind, so a name never picks one of two."""
+    from ggns.config import EXPERIMENTS_DIR, preset_files, resolve_preset
+
+    for kind in ("sweeps", "learning"):
+        names = [p.stem for p in preset_files(kind)]
+        assert len(names) == len(set(names)), kind
+        assert any(p.is_relative_to(EXPERIMENTS_DIR) for p in preset_files(kind))
+    assert resolve_preset("plate_cpu_partition", "sweeps") == EXPERIMENTS_DIR / "plate_cpu" / "sweeps" / "plate_cpu_partition.yaml"
+    assert resolve_preset("plate_cpu", "sweeps") == CONF_DIR / "sweeps" / "plate_cpu.yaml"  # shipped
+    assert resolve_preset("plate_cpu", "learning") == EXPERIMENTS_DIR / "plate_cpu" / "learning" / "plate_cpu.yaml"
+    assert not list(CONF_DIR.glob("*/plate_cpu_partition.yaml"))  # not shipped in the package
+    with pytest.raises(FileNotFoundError, match="experiments.*known: .*plate_cpu_partition"):
+        resolve_preset("plate_cpu_partitio", "sweeps")

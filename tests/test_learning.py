@@ -14,7 +14,7 @@ import yaml
 
 from conftest import TINY12
 from ggns.__main__ import main
-from ggns.config import CONF_DIR
+from ggns.config import CONF_DIR, preset_files
 from ggns.experiments.curves import CLOCK, COLUMNS, late_slope, read_scalars, steps_to_threshold, variant_row
 from ggns.experiments.learning import FINISHED, load_learning, run_learning, variant_runs
 from ggns.models.lr_schedule import scheduled_lr
@@ -166,7 +166,7 @@ def test_the_shipped_learning_file_parses(tmp_path):
             assert cli.datamodule.batch_size == 4 and cli.trainer.val_check_interval == 200
 
 
-@pytest.mark.parametrize("name", sorted(p.stem for p in (CONF_DIR / "learning").glob("tissue_*.yaml")))
+@pytest.mark.parametrize("name", sorted(p.stem for p in preset_files("learning") if p.stem.startswith("tissue_")))
 def test_every_variant_of_the_tissue_learning_files_parses(name, tmp_path):
     """Each variant of each tissue learning file builds through the Lightning CLI with its arguments
     (option names, values, class switches such as GGNS(M)); nothing is trained."""

@@ -11,7 +11,7 @@ import pytest
 import torch
 import yaml
 
-from ggns.config import CONF_DIR
+from ggns.config import CONF_DIR, preset_files
 from ggns.baselines.scores import GENERATED_MESH_FILE
 from ggns.experiments.sweep import (Run, baseline_spec, load_sweep, prepare_datasets, run_baselines, run_sweep, runs_of,
                                     slurm_script, summarize)
@@ -212,9 +212,9 @@ def test_slurm_script_has_one_task_per_run(tmp_path):
     assert "python -m ggns sweep --config conf/sweeps/plate.yaml --task $SLURM_ARRAY_TASK_ID" in script
 
 
-@pytest.mark.parametrize("preset", sorted(p.stem for p in (CONF_DIR / "sweeps").glob("*.yaml")))
+@pytest.mark.parametrize("preset", sorted(p.stem for p in preset_files("sweeps")))
 def test_every_run_of_every_sweep_preset_parses(preset, tmp_path):
-    """Each model of each shipped sweep builds through the Lightning CLI with its arguments
+    """Each model of each sweep preset (shipped, and the experiments' of this checkout) builds through the Lightning CLI with its arguments
     (catches typos in option names and values; nothing is trained)."""
     from ggns.cli import build_cli
 

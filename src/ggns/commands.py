@@ -244,7 +244,7 @@ def bench_learning(*overrides: str, config: str = "plate_ggns", minutes: float |
 
     Args:
         overrides: learning-file overrides as key=value, e.g. val_every=50
-        config: learning file in conf/learning/ or a YAML path
+        config: learning file in conf/learning/ or a checkout's experiments/*/learning/, or a YAML path
         minutes: wall-clock budget per variant (default: the file's)
         parallel: variants at once (default: the file's)
         variant: run only these variants (default: all; the report covers every variant with logs)
@@ -438,7 +438,7 @@ def sweep(*overrides: str, config: str = "plate", task: int | None = None, slurm
 
     Args:
         overrides: sweep overrides as key=value, e.g. seeds=[0,1] parallel=2
-        config: sweep preset in conf/sweeps/ or a YAML path
+        config: sweep preset in conf/sweeps/ or a checkout's experiments/*/sweeps/, or a YAML path
         task: run only this run of the grid (a SLURM array task; no summary)
         slurm: write a SLURM job-array script for the sweep to this file instead of running
         aggregate_only: only aggregate the finished runs (e.g. after a SLURM array)

@@ -29,16 +29,29 @@ def config_file(spec: str | Path) -> Path:
     return path
 
 
+# The presets of the project's own experiments (sweeps and learning files that answered one question, each
+# beside its page in docs/experiments/): experiments/<experiment>/<kind>/<name>.yaml at a checkout's top, not
+# shipped in the package. A checkout finds them by name as it finds conf/'s; an installed package does not.
+EXPERIMENTS_DIR = CONF_DIR.parents[2] / "experiments"
+
+
+def preset_files(kind: str) -> list[Path]:
+    """Every preset of a kind by name: conf/<kind>/*.yaml, then a checkout's experiments/*/<kind>/*.yaml."""
+    return sorted((CONF_DIR / kind).glob("*.yaml")) + sorted(EXPERIMENTS_DIR.glob(f"*/{kind}/*.yaml"))
+
+
 def resolve_preset(name: str | Path, kind: str = "data") -> Path:
-    """A path to an existing YAML file, or a preset name looked up in conf/<kind>/<name>.yaml."""
+    """A path to an existing YAML file, or a preset name: conf/<kind>/<name>.yaml, else the experiment preset
+    experiments/*/<kind>/<name>.yaml of a checkout (`preset_files`)."""
     path = Path(name)
     if path.is_file():
         return path
-    candidate = CONF_DIR / kind / f"{name}.yaml"
-    if candidate.is_file():
-        return candidate
-    known = sorted(p.stem for p in (CONF_DIR / kind).glob("*.yaml"))
-    raise FileNotFoundError(f"no config file {str(name)!r} and no preset of that name in {CONF_DIR / kind} (known: {known})")
+    found = [p for p in preset_files(kind) if p.stem == str(name)]
+    if found:
+        return found[0]
+    known = sorted({p.stem for p in preset_files(kind)})
+    raise FileNotFoundError(f"no config file {str(name)!r} and no preset of that name in {CONF_DIR / kind} "
+                            f"or {EXPERIMENTS_DIR}/*/{kind} (known: {known})")
 
 
 class UnknownKeyError(ValueError):

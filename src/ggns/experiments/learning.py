@@ -1,7 +1,7 @@
 """Learning per CPU-second (`python -m ggns bench learning`): how fast named variants of one model
 config learn within the same wall-clock budget, from their TensorBoard curves.
 
-A learning file (conf/learning/<name>.yaml or a path) holds:
+A learning file (conf/learning/<name>.yaml, a checkout's experiments/<experiment>/learning/<name>.yaml, or a path) holds:
     output: lightning_logs/learning/plate_ggns  # a variant logs to <output>/<variant>/seed_<seed>
     minutes: 10                                 # wall-clock budget per variant (trainer.max_time)
     val_every: 100                              # optimizer steps between validations

@@ -1,7 +1,7 @@
 """Multi-seed sweeps: a grid of model configs x seeds, each run a Lightning `fit` then `test`
 through the CLI in its own process, several at once, resumable.
 
-A sweep file (conf/sweeps/<name>.yaml or a path) holds:
+A sweep file (conf/sweeps/<name>.yaml, a checkout's experiments/<experiment>/sweeps/<name>.yaml, or a path) holds:
     output: lightning_logs/sweeps/plate     # runs go to <output>/<model>/seed_<s>[_test]
     seeds: [0, 1, 2]
     parallel: 2                             # runs at once on this machine

@@ -1,5 +1,5 @@
 """GGNSID's material estimate along rollouts under point-cloud schedules (issue 24, the k=5 question):
-python scripts/material_trace.py CHECKPOINT [--dataset plate --data-dir DIR --split test --trajectories 27 --schedules 1,5]
+python experiments/material_estimator/material_trace.py CHECKPOINT [--dataset plate --data-dir DIR --split test --trajectories 27 --schedules 1,5]
 
 Rolls the checkpoint out one step at a time from S_0 under "a point cloud every k steps" for each k and
 prints, every 5 steps, the mean |estimate - Poisson's ratio| over the trajectories (GGNSID; nan for a

@@ -1,5 +1,5 @@
 """What the point clouds give GGNS on a 3D task, and what it does with them (the cavity's grounding gain):
-python scripts/cavity_diagnosis.py --dataset cavity_cpu [--cameras cavity_cpu_cam2,cavity_cpu_cam1]
+python experiments/cavity_diagnosis/cavity_diagnosis.py --dataset cavity_cpu [--cameras cavity_cpu_cam2,cavity_cpu_cam1]
     [--checkpoint CKPT] [--split val --trajectories 9] [--output docs/results/cavity_diagnosis]
 
 Data (no model): per camera preset, points per step, the share of free mesh nodes with a point within a
@@ -50,7 +50,7 @@ from ggns.models.training_noise import smooth_field
 from ggns.pretrained import load_model
 from ggns.reports import markdown_table, write_json, write_text
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]  # the checkout
 GROUPS = ("all", "seen", "never_seen", "inner", "outer", "near_finger", "far")
 PERTURBATIONS = ("node", "field")  # per node and coordinate; a smooth field (`smooth_field`)
 
@@ -279,7 +279,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    report = {"command": shlex.join(["python", "scripts/cavity_diagnosis.py", *sys.argv[1:]]), "commit": commit or "unknown",
+    report = {"command": shlex.join(["python", "experiments/cavity_diagnosis/cavity_diagnosis.py", *sys.argv[1:]]), "commit": commit or "unknown",
               "data": [data_report(d, args.data_dir if d == args.dataset else None, args.split, args.trajectories,
                                    args.near, args.finger, args.radius, args.noise)
                        for d in [args.dataset, *filter(None, args.cameras.split(","))]]}

@@ -36,18 +36,14 @@ def test_a_frame_whose_step_fails_is_retried_with_smaller_steps_and_recorded():
     and its diagnostics record the substeps of every frame; without retries the failure names the frame."""
     from ggns.scenes import plate
     from ggns.sim import run
-    from ggns.sim.solver import SimulationError, SolverConfig
+    from ggns.sim.solver import SimulationError
 
     cfg = load_config("plate")
-    scene, seed, combination = cfg["scene"], 680361923135515639, 25
-    rng = np.random.default_rng(seed)
-    n_nu = len(scene["poissons_ratios"])
-    spec = plate.sample_spec(scene, combination // n_nu, scene["poissons_ratios"][combination % n_nu], rng)
-    rest, cells, fixed = plate.plate_mesh(scene, spec.shape_id)
-    path, faces = plate.collider_path(scene, spec)
-    material = plate.plate_material(scene, spec.poissons_ratio)
-    solver = SolverConfig(dt=scene["frame_dt"], **cfg["solver"])
-    positions, d = run.simulate(rest, cells, fixed, material, solver, [(path, faces)], substeps=1)
+    assert cfg["scene"]["substeps"] == 1
+    inputs = plate.simulation_inputs(cfg, 25, np.random.default_rng(680361923135515639))
+    rest, cells, fixed, path, faces = inputs.rest, inputs.cells, inputs.fixed, inputs.path, inputs.faces
+    material, solver = inputs.material, inputs.solver
+    positions, d = inputs.simulate()
     assert np.isfinite(positions).all() and d["max_penetration"].max() <= cfg["solver"]["contact_tolerance"]
     assert np.flatnonzero(d[run.REFINED] != 1).tolist() == [22] and d[run.REFINED][22] == 2
     # frames before the retried one are those of a run that stops there (nothing else changed)

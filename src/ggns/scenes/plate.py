@@ -138,19 +138,48 @@ def num_combinations(scene: dict) -> int:
     return len(scene["top_widths"]) * len(scene["top_offsets"]) * len(scene["poissons_ratios"])
 
 
+@dataclass(frozen=True)
+class SimulationInputs:
+    """What `simulate` takes for one plate trajectory (`simulation_inputs`), and the sampled spec."""
+
+    spec: PlateSpec
+    rest: np.ndarray  # [N, 2]
+    cells: np.ndarray  # [C, 3]
+    fixed: np.ndarray  # [N] bool
+    path: np.ndarray  # collider vertices per frame [T, K, 2]
+    faces: np.ndarray  # collider segments [F, 2]
+    material: Material
+    solver: SolverConfig
+    substeps: int
+
+    def simulate(self):
+        """(positions [T, N, 2], diagnostics): the trajectory's simulation (`sim.run.simulate`)."""
+        return simulate(self.rest, self.cells, self.fixed, self.material, self.solver, [(self.path, self.faces)],
+                        self.substeps)
+
+
+def simulation_inputs(config: dict, combination: int, rng: np.random.Generator) -> SimulationInputs:
+    """Sample combination's trajectory (0..num_combinations-1, shape-major) with rng and build its mesh,
+    collider path, material and solver settings (the preset's substeps per frame)."""
+    scene = config["scene"]
+    n_nu = len(scene["poissons_ratios"])
+    spec = sample_spec(scene, combination // n_nu, scene["poissons_ratios"][combination % n_nu], rng)
+    rest, cells, fixed = plate_mesh(scene, spec.shape_id)
+    path, faces = collider_path(scene, spec)
+    substeps = int(scene["substeps"])
+    return SimulationInputs(spec, rest, cells, fixed, path, faces, plate_material(scene, spec.poissons_ratio),
+                            SolverConfig(dt=scene["frame_dt"] / substeps, **config["solver"]), substeps)
+
+
 def make_trajectory(config: dict, combination: int, seed: int, sensor) -> Trajectory:
     """Simulate and observe one plate trajectory. combination: 0..num_combinations-1
     (shape-major); seed: drives collider sampling and sensor noise."""
     scene = config["scene"]
     rng = np.random.default_rng(seed)
-    n_nu = len(scene["poissons_ratios"])
-    spec = sample_spec(scene, combination // n_nu, scene["poissons_ratios"][combination % n_nu], rng)
-    rest, cells, fixed = plate_mesh(scene, spec.shape_id)
-    path, faces = collider_path(scene, spec)
-    material = plate_material(scene, spec.poissons_ratio)
-    substeps = int(scene["substeps"])
-    solver = SolverConfig(dt=scene["frame_dt"] / substeps, **config["solver"])
-    positions, diagnostics = simulate(rest, cells, fixed, material, solver, [(path, faces)], substeps)
+    inputs = simulation_inputs(config, combination, rng)
+    spec, rest, cells, fixed = inputs.spec, inputs.rest, inputs.cells, inputs.fixed
+    path, faces, material = inputs.path, inputs.faces, inputs.material
+    positions, diagnostics = inputs.simulate()
     points, offsets = pack_point_clouds([sensor.observe(positions[t], cells, path[t], faces, rng)
                                          for t in range(len(positions))])
     return Trajectory(

@@ -23,7 +23,7 @@ Memory model per reading process (the main one, or each DataLoader worker): the 
 (the data module gives each of `num_workers` workers budget / num_workers, so that all together keep at
 most the budget), plus the one validation trajectory being cut into windows, plus the batches in flight,
 plus what grows with the split's length: about 30 bytes a trajectory of metadata and the epoch's order of
-windows (a list of ints, `BlockSampler`). Of the files it keeps at most one open, with HDF5's metadata
+windows (an int64 array, `BlockSampler`). Of the files it keeps at most one open, with HDF5's metadata
 cache capped (`METADATA_CACHE`): left to HDF5's default, an open file's cache kept about 50 KB for every
 trajectory visited, so a split's peak grew with its length (docs/streaming.md).
 Workers get batches in turn, so each of them reads the trajectories of the current block: with w workers,

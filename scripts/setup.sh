@@ -49,7 +49,7 @@ install -q "$TORCH" ninja wheel "setuptools>=66"
 TORCH_CLUSTER_OPS=${TORCH_CLUSTER_OPS:-version radius knn}
 WHEELS=${GGNS_WHEEL_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/ggns/wheels}
 if ! "$VENV/bin/python" -c "import torch_cluster" 2>/dev/null; then
-  TORCH_TAG=$("$VENV/bin/python" -c "import torch; print(torch.__version__.replace('+', '_'))")
+  TORCH_TAG=$("$VENV/bin/python" -c "import importlib.metadata as m; print(m.version('torch').replace('+', '_'))")
   CACHED="$WHEELS/torch-$TORCH_TAG/$(echo "$TORCH_CLUSTER_OPS" | tr ' ' '.')"
   if ! ls "$CACHED"/torch_cluster-*.whl >/dev/null 2>&1; then
     echo "[setup] building torch-cluster ($TORCH_CLUSTER_OPS) from source (minutes the first time; the wheel is kept in $CACHED)"
@@ -74,8 +74,13 @@ if ! "$VENV/bin/python" -c "import torch_cluster" 2>/dev/null; then
 fi
 install -q -r requirements.txt
 install -q --no-deps --no-build-isolation -e .
+# A check of what can fail after pip said yes: the compiled operators against this torch, and open3d's system
+# library (importing Lightning and PyG too would add 4 s to every set-up; the first command imports them).
 "$VENV/bin/python" -c "
-import torch, torch_cluster, torch_geometric, open3d, h5py, pytorch_lightning
+import importlib.metadata
+import torch, torch_cluster, open3d, h5py
 x = torch.rand(20, 3)
 torch_cluster.radius_graph(x, 0.5), torch_cluster.knn(x, x, 2)  # the operators ggns calls
+for name in ('torch-geometric', 'pytorch-lightning', 'ggns'):
+    importlib.metadata.version(name)  # PackageNotFoundError names a missing one
 print('[setup] ok: torch', torch.__version__, '| torch-cluster', torch_cluster.__version__)"

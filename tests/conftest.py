@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 import shutil
 import sys
+import threading
 from pathlib import Path
 
 os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")  # as `python -m ggns` runs (ggns.__main__), before torch allocates
@@ -89,6 +90,36 @@ def single_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+_IN_PROCESS = threading.Lock()
+
+
+def launch_in_process(command: list[str], out, env: dict[str, str]) -> int:
+    """A `ggns.experiments.sweep.Launch` for tests of what a sweep or `bench learning` decides (which fits
+    and tests run, skip, resume, merge): `python -m ggns ...` called in this test process, one at a time,
+    with the torch threads its OMP_NUM_THREADS asks for; output into `out`. Saves a process start-up
+    (about 12 s of imports here) per command. What processes add (their own exit status, a kill of the
+    whole group) is tested through real processes in test_faults.py and test_bad_input.py."""
+    import contextlib
+
+    import torch
+
+    from ggns.__main__ import main
+
+    assert command[1:3] == ["-m", "ggns"], command
+    with _IN_PROCESS, pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(out), \
+            contextlib.redirect_stderr(out):
+        patch.setattr(sys, "argv", ["ggns"])
+        threads = torch.get_num_threads()
+        torch.set_num_threads(int(env.get("OMP_NUM_THREADS", threads)))
+        try:
+            main(command[3:])
+        except SystemExit as stop:
+            return stop.code if isinstance(stop.code, int) else 1
+        finally:
+            torch.set_num_threads(threads)
+    return 0
 
 
 @pytest.fixture(scope="module")

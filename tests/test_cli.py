@@ -327,22 +327,30 @@ def test_a_fit_stopped_by_sigterm_exits_nonzero(cli_data, tmp_path, capsys):
     assert (last["epoch"], last["global_step"]) == (0, 1)  # stopped after batch 1 of 3 epochs x 2 batches
 
 
+def _seeded_fit_and_test(cli_data, logs: Path, name: str, loader_workers: int) -> tuple[dict, dict]:
+    """A fit (one epoch) and a test with seed 0: (last.ckpt's weights, the test metrics)."""
+    run_cli(["fit", *cli_args("ggns", cli_data, logs, name, "--trainer.max_epochs", "1", "--seed_everything", "0",
+                              "--trainer.limit_val_batches", "0", "--data.num_workers", str(loader_workers))])
+    (last,) = (logs / "ggns" / name / "checkpoints").glob("last.ckpt")
+    run_cli(["test", *cli_args("ggns", cli_data, logs, f"{name}_test", "--ckpt_path", str(last),
+                               "--seed_everything", "0", "--data.num_workers", str(loader_workers))])
+    metrics = json.loads((logs / "ggns" / f"{name}_test" / "test_metrics.json").read_text())
+    metrics.pop("checkpoint")
+    return torch.load(last, weights_only=True)["state_dict"], metrics
+
+
+@pytest.fixture(scope="module")
+def first_seeded_run(cli_data, tmp_path_factory):
+    return _seeded_fit_and_test(cli_data, tmp_path_factory.mktemp("seeded"), "first", 0)
+
+
 @pytest.mark.parametrize("workers", [0, 2])
-def test_the_same_seed_gives_bit_identical_weights_and_test_metrics(cli_data, tmp_path, workers):
-    """Determinism on the CPU (issue 23): a fit + test with seed 0 twice, the second with `workers`
-    data-loader processes, gives the same checkpoint weights and test metrics bit for bit (the
-    sampler and the training noise run in the main process; workers only read windows)."""
-    runs = {}
-    for name, loader_workers in (("first", 0), ("again", workers)):
-        run_cli(["fit", *cli_args("ggns", cli_data, tmp_path, name, "--trainer.max_epochs", "1", "--seed_everything", "0",
-                                  "--trainer.limit_val_batches", "0", "--data.num_workers", str(loader_workers))])
-        (last,) = (tmp_path / "ggns" / name / "checkpoints").glob("last.ckpt")
-        run_cli(["test", *cli_args("ggns", cli_data, tmp_path, f"{name}_test", "--ckpt_path", str(last),
-                                   "--seed_everything", "0", "--data.num_workers", str(loader_workers))])
-        metrics = json.loads((tmp_path / "ggns" / f"{name}_test" / "test_metrics.json").read_text())
-        metrics.pop("checkpoint")
-        runs[name] = (torch.load(last, weights_only=True)["state_dict"], metrics)
-    (first_weights, first_metrics), (weights, metrics) = runs["first"], runs["again"]
+def test_the_same_seed_gives_bit_identical_weights_and_test_metrics(cli_data, tmp_path, workers, first_seeded_run):
+    """Determinism on the CPU (issue 23): a fit + test with seed 0 twice (the first shared by both cases),
+    the second with `workers` data-loader processes, gives the same checkpoint weights and test metrics
+    bit for bit (the sampler and the training noise run in the main process; workers only read windows)."""
+    (first_weights, first_metrics) = first_seeded_run
+    weights, metrics = _seeded_fit_and_test(cli_data, tmp_path, "again", workers)
     assert first_weights.keys() == weights.keys()
     assert all(torch.equal(first_weights[k], weights[k]) for k in weights)
     assert metrics == first_metrics and all(math.isfinite(m["mean"]) for m in metrics.values())

@@ -21,7 +21,7 @@ from ggns.config import CONF_DIR
 from ggns.data.module import EpochSampler
 from ggns.models.normalization import Normalizer, merge_across
 from test_faults import _losses
-from conftest import TINY12
+from conftest import TINY12, launch_in_process
 
 ROOT = Path(__file__).resolve().parents[1]
 STEPS = 8  # 2 epochs of 4 batches
@@ -41,6 +41,12 @@ def _fit(data, logs, version: str, processes: int, batch_size: int,
                "--trainer.limit_val_batches", "1" if validate else "0", "--trainer.check_val_every_n_epoch", "1",
                "--trainer.log_every_n_steps", "1", "--trainer.accelerator", "cpu",
                "--trainer.devices", str(processes), "--trainer.strategy", strategy, *extra]
+    if processes == 1:  # the one-process reference in this test process (a start-up fewer); DDP's are real
+        log = Path(logs) / f"{version}.log"
+        Path(logs).mkdir(parents=True, exist_ok=True)
+        with open(log, "w") as out:
+            status = launch_in_process(command, out, {"OMP_NUM_THREADS": "1"})
+        return subprocess.CompletedProcess(command, status, "", log.read_text())
     # SIGKILL on timeout: a rank stuck in a collective ignores the SIGTERM that subprocess.run would send
     with subprocess.Popen(command, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": "1"}, stdout=subprocess.PIPE,
                           stderr=subprocess.PIPE, text=True, start_new_session=True) as proc:

@@ -158,9 +158,14 @@ def _losses(run: Path) -> dict[int, float]:
 
 @pytest.fixture(scope="module")
 def uninterrupted_fit(cli_data, tmp_path_factory):
+    """The fit uninterrupted, in this test process (a process start-up fewer; the kills are real processes)."""
+    from conftest import launch_in_process
+
     logs = tmp_path_factory.mktemp("fit_logs")
-    done = _fit(_fit_command(cli_data, logs, "whole"))
-    assert done.returncode == 0, done.stderr[-3000:]
+    assert "GGNS_KILL_AT" not in os.environ
+    with open(logs / "fit.log", "w") as out:
+        status = launch_in_process(_fit_command(cli_data, logs, "whole"), out, {"OMP_NUM_THREADS": "1"})
+    assert status == 0, (logs / "fit.log").read_text()[-3000:]
     run = logs / "ggns" / "whole"
     last = torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)
     assert last["global_step"] == FIT_STEPS
@@ -329,8 +334,11 @@ def test_a_sweep_killed_mid_fit_and_mid_test_finishes_with_the_uninterrupted_met
     """Kill points (events, not times): the fit's first last.ckpt (end of epoch 0 of 2), then the first
     test part's output directory. Each rerun of the same command resumes: the fit from last.ckpt, the
     tests from the parts that finished; the merged test metrics equal an uninterrupted sweep's."""
-    whole = _sweep_file(tmp_path / "whole", cli_data)
-    assert _sweep(whole) == 0
+    from conftest import launch_in_process
+    from ggns.experiments.sweep import load_sweep, run_sweep
+
+    # the uninterrupted reference: the same sweep, its fit and test in this process (two start-ups fewer)
+    run_sweep(load_sweep(_sweep_file(tmp_path / "whole", cli_data)), log=lambda message: None, launch=launch_in_process)
     expected = json.loads((tmp_path / "whole" / "sweep" / "mgn" / "seed_0_test" / "test_metrics.json").read_text())
 
     path = _sweep_file(tmp_path / "killed", cli_data)

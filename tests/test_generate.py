@@ -1,7 +1,4 @@
 """Dataset generation end to end: real simulation, real Open3D raycasting, real HDF5 files."""
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,9 +6,6 @@ import shapely
 
 from ggns.data.generate import generate, regenerate, split_path
 from ggns.data.schema import SplitReader, read_trajectories
-
-ROOT = Path(__file__).resolve().parents[1]
-
 
 def _assert_same(a, b):
     for name in ("rest_positions", "cells", "edges", "positions", "fixed", "collider_faces", "collider_positions", "points", "point_offsets"):
@@ -68,8 +62,17 @@ def test_every_point_lies_on_the_deformed_plate(tiny_dataset):
             assert np.mean(shapely.distance(region, points) == 0) > 0.9
 
 
-def _run_cli(*args, **kwargs):
-    return subprocess.run([sys.executable, "-m", "ggns", *args], cwd=ROOT, capture_output=True, text=True, **kwargs)
+def _run_cli(capsys, *args) -> tuple[int, str]:
+    """`python -m ggns <args>` in this process: (exit status, what it wrote on stderr)."""
+    from ggns.__main__ import main
+
+    capsys.readouterr()
+    try:
+        main(list(args))
+        status = 0
+    except SystemExit as stop:
+        status = stop.code if isinstance(stop.code, int) else 1
+    return status, capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
@@ -78,15 +81,16 @@ def _run_cli(*args, **kwargs):
      ("scene.gird_nodes=5", "scene.gird_nodes (did you mean scene.grid_nodes?)"),  # a typo
      ("sensr.voxel_size=0.1", "sensr (did you mean sensor or")],
 )
-def test_cli_refuses_bad_configuration_before_writing(tmp_path, override, message):
-    result = _run_cli("generate", "--config", "plate_tiny", "--output", str(tmp_path / "out"), override)
-    assert result.returncode == 2 and message in result.stderr
+def test_cli_refuses_bad_configuration_before_writing(tmp_path, capsys, override, message):
+    status, err = _run_cli(capsys, "generate", "--config", "plate_tiny", "--output", str(tmp_path / "out"), override)
+    assert status == 2 and message in err
     assert not (tmp_path / "out").exists()
 
 
-def test_cli_refuses_to_overwrite_and_keeps_the_file(tiny_dataset):
+def test_cli_refuses_to_overwrite_and_keeps_the_file(tiny_dataset, capsys):
     path = split_path(tiny_dataset["output"], "train")
     before = path.read_bytes()
-    result = _run_cli("generate", "--config", "plate_tiny", "--output", tiny_dataset["output"], "--split", "train")
-    assert result.returncode == 2 and "already exist" in result.stderr
+    status, err = _run_cli(capsys, "generate", "--config", "plate_tiny", "--output", tiny_dataset["output"],
+                           "--split", "train")
+    assert status == 2 and "already exist" in err
     assert path.read_bytes() == before

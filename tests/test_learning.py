@@ -1,5 +1,5 @@
 """`python -m ggns bench learning` (`ggns.experiments.learning`): the curve summaries on hand-made
-curves, and two tiny GGNS variants end to end (real subprocess fits of the Lightning CLI on
+curves, and two tiny GGNS variants end to end (fits of the Lightning CLI in this process, `launch_in_process`, on
 plate_tiny with T = 12, a budget of 4 optimizer steps): table, CSV and figures, the logged lr, resume."""
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import TINY12
+from conftest import TINY12, launch_in_process
 from ggns.__main__ import main
 from ggns.config import CONF_DIR, preset_files
 from ggns.experiments.curves import CLOCK, COLUMNS, late_slope, read_scalars, steps_to_threshold, variant_row
@@ -94,7 +94,7 @@ def test_two_tiny_variants_end_to_end_and_resume(cli_data, tmp_path):
     assert [r.model for r in runs] == ["paper", "decay"]
     assert "00:00:05:00" in runs[0].args and runs[1].args[-1] == "2"  # the budget first, the variant last
     messages = []
-    report = run_learning(spec, log=messages.append)
+    report = run_learning(spec, log=messages.append, launch=launch_in_process)
     output = tmp_path / "learning"
     assert sorted(p.name for p in output.glob("*.png")) == ["curves_seconds.png", "curves_steps.png"]
     with open(output / "learning.csv") as f:
@@ -117,7 +117,7 @@ def test_two_tiny_variants_end_to_end_and_resume(cli_data, tmp_path):
     # resume: both finished variants are skipped, the report is rewritten
     stamps = [(r.fit_dir / FINISHED).stat().st_mtime_ns for r in runs]
     messages.clear()
-    run_learning(spec, log=messages.append)
+    run_learning(spec, log=messages.append, launch=launch_in_process)
     assert sorted(m for m in messages if m.startswith(("skip", "fit"))) == [
         f"skip {r.model}: {r.fit_dir / FINISHED} exists" for r in sorted(runs, key=lambda r: r.model)]
     assert [(r.fit_dir / FINISHED).stat().st_mtime_ns for r in runs] == stamps

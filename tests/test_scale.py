@@ -1,8 +1,6 @@
 """The paper-scale plate and the scale check (`ggns.graphs.scale`, `python -m ggns geometry`):
 the measured quantities against hand computations on real generated files, the preset's
 geometry, and the refusal of split files generated for another scene."""
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -72,11 +70,14 @@ def test_check_and_report_flag_values_out_of_range():
         check(values, {"typo": [0, 1]})
 
 
-def test_geometry_command_prints_the_table(tiny_data_dir, tmp_path):
+def test_geometry_command_prints_the_table(tiny_data_dir, tmp_path, capsys):
     preset = tmp_path / "tiny.yaml"
     preset.write_text(f"base: {load_config.__globals__['CONF_DIR'] / 'data' / 'plate_tiny.yaml'}\noutput: {tiny_data_dir}\n")
-    out = subprocess.run([sys.executable, "-m", "ggns", "geometry", "--dataset", str(preset), "--trajectories", "2",
-                          "--stride", "4"], capture_output=True, text=True, check=True).stdout
+    from ggns.__main__ import main
+
+    capsys.readouterr()
+    main(["geometry", "--dataset", str(preset), "--trajectories", "2", "--stride", "4"])
+    out = capsys.readouterr().out
     assert "| edges_per_graph |" in out and "| free_motion_rms |" in out and "targets" in out
 
 

@@ -1,4 +1,5 @@
-"""Multi-seed sweeps end to end on tiny generated data (real subprocess runs of the Lightning CLI):
+"""Multi-seed sweeps end to end on tiny generated data (the Lightning CLI's fits and tests run in this process
+through `launch_in_process`; the real processes of a sweep are test_faults.py's and test_bad_input.py's):
 each metric family tested with the checkpoint selected on it, resume (finished runs and test parts
 skipped), the fallbacks of fits without per-family checkpoints, and the SLURM job-array script."""
 from __future__ import annotations
@@ -15,7 +16,7 @@ from ggns.config import CONF_DIR, preset_files
 from ggns.baselines.scores import GENERATED_MESH_FILE
 from ggns.experiments.sweep import (Run, baseline_spec, load_sweep, prepare_datasets, run_baselines, run_sweep, runs_of,
                                     slurm_script, summarize)
-from conftest import TINY12
+from conftest import TINY12, launch_in_process
 
 
 def write_sweep(tmp_path, data_dir, seeds=(0, 1)) -> str:
@@ -51,7 +52,7 @@ def test_two_seed_sweep_runs_skips_and_resumes(cli_data, tmp_path):
     runs = runs_of(sweep)
     assert [(r.model, r.seed) for r in runs] == [("mgn", 0), ("mgn", 1)]
     messages = []
-    run_sweep(sweep, log=messages.append)
+    run_sweep(sweep, log=messages.append, launch=launch_in_process)
     metrics = {r.seed: json.loads(r.metrics_path.read_text()) for r in runs}
     for run, m in zip(runs, metrics.values()):
         assert "rollout_mse_never" in m and m["rollout_mse_never"]["count"] == 2
@@ -86,7 +87,7 @@ def test_two_seed_sweep_runs_skips_and_resumes(cli_data, tmp_path):
     old.unlink()
     run.metrics_path.unlink()
     messages.clear()
-    run_sweep(sweep, log=messages.append)
+    run_sweep(sweep, log=messages.append, launch=launch_in_process)
     assert any("skip mgn seed 1" in m for m in messages) and runs[1].metrics_path.stat().st_mtime_ns == stamp
     assert not any(m.startswith("fit") for m in messages)  # the fit ended before its tests began
     assert any(m.startswith("skip test mgn seed 0 best-never-step=") for m in messages)

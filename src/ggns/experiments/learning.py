@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -34,7 +33,7 @@ from omegaconf import OmegaConf
 from ..config import resolve_preset
 from ..reports import write_csv, write_json
 from .curves import CLOCK, COLUMNS, LATE_STEPS, RATIO_THRESHOLD, markdown_rows, plot_curves, read_scalars, variant_row
-from .sweep import Run, RunFailed
+from .sweep import Launch, Run, RunFailed, launch_process
 
 FINISHED = "learning_finished.json"
 
@@ -96,9 +95,9 @@ def variant_runs(spec: dict) -> list[Run]:
             for name, args in spec["variants"].items()]
 
 
-def fit_variant(run: Run, threads: int | None = None, log=print) -> Run:
-    """The variant's fit in its own process (resuming a left-over last.ckpt); skipped when finished
-    with the same arguments, an error when finished with others."""
+def fit_variant(run: Run, threads: int | None = None, log=print, launch: Launch = launch_process) -> Run:
+    """The variant's fit through `launch` (default: its own process; resuming a left-over last.ckpt);
+    skipped when finished with the same arguments, an error when finished with others."""
     marker = run.fit_dir / FINISHED
     if marker.is_file():
         done = json.loads(marker.read_text())
@@ -111,16 +110,16 @@ def fit_variant(run: Run, threads: int | None = None, log=print) -> Run:
     log(f"fit {run.model}")
     start = time.perf_counter()
     with open(run.output / run.model / f"seed_{run.seed}.log", "a") as out:
-        result = subprocess.run(run.fit_command(), stdout=out, stderr=subprocess.STDOUT,
-                                env={**os.environ, **({"OMP_NUM_THREADS": str(threads)} if threads else {})})
-    if result.returncode != 0:
-        raise RunFailed.of(f"fit of variant {run.model}", result.returncode, out.name)
+        status = launch(run.fit_command(), out, {**os.environ, **({"OMP_NUM_THREADS": str(threads)} if threads else {})})
+    if status != 0:
+        raise RunFailed.of(f"fit of variant {run.model}", status, out.name)
     write_json(marker, {"args": list(run.args), "process_seconds": time.perf_counter() - start})
     return run
 
 
-def run_learning(spec: dict, only: Sequence[str] | None = None, log=print) -> Path:
-    """Fit the variants (`only` these names, else all; `parallel` at once), then `write_report`."""
+def run_learning(spec: dict, only: Sequence[str] | None = None, log=print, launch: Launch = launch_process) -> Path:
+    """Fit the variants (`only` these names, else all; `parallel` at once; each through `launch`, see
+    `fit_variant`), then `write_report`."""
     runs = variant_runs(spec)
     if only:
         unknown = sorted(set(only) - {r.model for r in runs})
@@ -130,7 +129,7 @@ def run_learning(spec: dict, only: Sequence[str] | None = None, log=print) -> Pa
     parallel = max(1, int(spec.get("parallel", 1)))
     threads = max(1, (os.cpu_count() or 1) // parallel)
     with ThreadPoolExecutor(parallel) as pool:
-        list(pool.map(lambda r: fit_variant(r, threads, log), runs))
+        list(pool.map(lambda r: fit_variant(r, threads, log, launch), runs))
     return write_report(spec, log=log)
 
 

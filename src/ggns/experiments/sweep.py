@@ -52,6 +52,7 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO, Callable
 
 from omegaconf import OmegaConf
 
@@ -252,11 +253,21 @@ class RunFailed(RuntimeError):
                    + f"; see {log_path}")
 
 
-def execute(run: Run, threads: int | None = None, log=print) -> Run:
+Launch = Callable[[list[str], IO[str], dict[str, str]], int]
+"""How a sweep or `bench learning` runs one `python -m ggns fit|test` command: (command, the open log file
+that takes its stdout and stderr, its environment) -> its exit status (negative: killed by that signal)."""
+
+
+def launch_process(command: list[str], out: IO[str], env: dict[str, str]) -> int:
+    """The default `Launch`: `command` as its own process, waited for."""
+    return subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, env=env).returncode
+
+
+def execute(run: Run, threads: int | None = None, log=print, launch: Launch = launch_process) -> Run:
     """fit (resuming a left-over last.ckpt) then the test parts, merged; a finished run is skipped,
     and so is the fit once it has ended (`FIT_ENDED`, written when its process returned 0) or a test
     part has finished (the fit ended before the tests began): a sweep killed during its tests does not
-    start the fit's process again."""
+    start the fit's process again. `launch` runs each command (default: a process of its own)."""
     if run.finished:
         log(f"skip {run.model} seed {run.seed}: {run.metrics_path} exists")
         return run
@@ -267,10 +278,11 @@ def execute(run: Run, threads: int | None = None, log=print) -> Run:
     with open(run.output / run.model / f"seed_{run.seed}.log", "a") as out:
         def call(step: str, command: list[str]) -> None:
             log(f"{step} {run.model} seed {run.seed}")
-            result = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, env=env)
-            if result.returncode != 0:
+            out.flush()
+            status = launch(command, out, env)
+            if status != 0:
                 out.flush()
-                raise RunFailed.of(f"{step} of {run.model} seed {run.seed}", result.returncode, out.name)
+                raise RunFailed.of(f"{step} of {run.model} seed {run.seed}", status, out.name)
 
         ended = run.fit_dir / FIT_ENDED
         if not ended.is_file() and not any(run.test_dir.glob("*/test_metrics.json")):
@@ -327,19 +339,19 @@ def prepare_datasets(runs: list[Run], log=print) -> list[str]:
     return checked
 
 
-def run_sweep(sweep: dict, task: int | None = None, log=print) -> list[Run]:
-    """All runs (`parallel` at once, after `prepare_datasets`) or only job-array task `task`. Returns the
-    runs executed."""
+def run_sweep(sweep: dict, task: int | None = None, log=print, launch: Launch = launch_process) -> list[Run]:
+    """All runs (`parallel` at once, after `prepare_datasets`) or only job-array task `task`, each command
+    through `launch` (see `execute`). Returns the runs executed."""
     runs = runs_of(sweep)
     if task is not None:
         if not 0 <= task < len(runs):
             raise IndexError(f"task {task} outside the sweep's {len(runs)} runs")
-        return [execute(runs[task], log=log)]
+        return [execute(runs[task], log=log, launch=launch)]
     prepare_datasets([r for r in runs if not r.finished], log)
     parallel = max(1, int(sweep.get("parallel", 1)))
     threads = max(1, (os.cpu_count() or 1) // parallel)
     with ThreadPoolExecutor(parallel) as pool:
-        return list(pool.map(lambda r: execute(r, threads, log), runs))
+        return list(pool.map(lambda r: execute(r, threads, log, launch), runs))
 
 
 def slurm_script(sweep: dict, sweep_file: str | Path, partition: str | None = None, time: str = "24:00:00",

@@ -100,3 +100,65 @@ def test_scene_with_invalid_poissons_ratio_is_refused(tiny_config):
     tiny_config["scene"]["poissons_ratios"] = [0.5]
     with pytest.raises(ValueError, match="Poisson"):
         make_trajectory(tiny_config, 0, 0, sensor=None)
+
+
+def _pressed_and_dragged(friction: float, steps: int = 10):
+    """The tet block of test_sim_linear_solvers with a cube pressed 2 cm into its top over 4 steps, then
+    dragged 1 cm per step along x for `steps` steps: (the top nodes' mean x displacement, the cube's)."""
+    from ggns.geometry import boundary_facets, box_tet_mesh
+    from ggns.sim.solver import Collider, Simulator, SolverConfig
+    from test_sim_linear_solvers import block
+
+    body, fixed, pulled = block()
+    fixed[pulled] = False
+    cube, cube_cells = box_tet_mesh((0, 0, 0), (0.4, 0.8, 0.3), 1)
+    faces = torch.tensor(boundary_facets(cube_cells, cube))
+    cube = torch.tensor(cube) + torch.tensor([0.3, -0.1, 0.6])  # touching the top, across its width
+    sim = Simulator(body, fixed, SolverConfig(dt=0.01, friction=friction))
+    x, v = body.X.clone(), torch.zeros_like(body.X)
+    offset = torch.zeros(3, dtype=torch.float64)
+    top = body.X[:, 2] > 0.6 - 1e-9
+    for t in range(4 + steps):
+        offset += torch.tensor([0.01 if t >= 4 else 0.0, 0.0, -0.005 if t < 4 else 0.0], dtype=torch.float64)
+        x, v, info = sim.step(x, v, [Collider(cube + offset, faces)])
+        assert info.max_penetration <= 1e-4
+    under = top & (body.X[:, 0] > 0.3) & (body.X[:, 0] < 0.7)
+    return (x - body.X)[under, 0].mean().item(), offset[0].item()
+
+
+def test_friction_drags_the_surface_along_and_frictionless_contact_does_not():
+    """A cube pressed into a clamped block and dragged 10 cm sideways: without friction the nodes under it
+    barely move along x (only what the pressing does); with mu = 0.5 they follow a little of the drag; with
+    mu = 10 they stick, and a larger mu changes nothing more (sticking is the limit: the block's shear
+    stiffness then decides, up to the slip the smoothing allows, 1e-5 m per step)."""
+    frictionless, dragged = _pressed_and_dragged(0.0)
+    some, _ = _pressed_and_dragged(0.5)
+    sticking, _ = _pressed_and_dragged(10.0)
+    stuck, _ = _pressed_and_dragged(100.0)
+    assert abs(frictionless) < 0.02 * dragged
+    assert 0.03 * dragged < some < 0.5 * sticking
+    assert sticking > 0.5 * dragged and abs(stuck - sticking) < 0.05 * sticking
+
+
+def test_friction_settings_are_checked():
+    from ggns.sim.solver import SolverConfig
+
+    for kwargs in (dict(friction=-0.1), dict(friction_velocity=0.0)):
+        with pytest.raises(ValueError, match="friction"):
+            SolverConfig(dt=0.01, **kwargs)
+
+
+def test_a_file_from_before_friction_reads_as_frictionless_and_not_as_friction():
+    """A split file written before the solver had `friction` does not name it: it is the frictionless
+    preset's file, and another configuration than a preset with friction."""
+    import dataclasses
+
+    from ggns.data.schema import SOLVER_DEFAULTS, config_differences
+    from ggns.sim.solver import SolverConfig
+
+    defaults = {f.name: f.default for f in dataclasses.fields(SolverConfig)}
+    assert all(defaults[k] == v for k, v in SOLVER_DEFAULTS.items())
+    stored = load_config("cavity_tiny")
+    stored["solver"].pop("friction")
+    assert config_differences(stored, load_config("cavity_tiny")) == []
+    assert config_differences(stored, load_config("cavity_tiny", ["solver.friction=0.5"])) == ["solver.friction"]

@@ -7,7 +7,8 @@ voxel (`--near`, default the preset's voxel size) per step, split into the inner
 nearer to / farther from the vertical axis than the mean of their height) and the nodes near a finger
 (within `--finger` of a collider vertex at that step), the mean number of points within the graph's
 mesh-point radius per free node, the RMS per-step motion of the free nodes (all, near a finger, the 10 %
-that move most) against the training noise and the points' spacing (median nearest-neighbour distance).
+that move most) against the training noise and the points' spacing (median nearest-neighbour distance),
+and the true displacement from S_0 split along the true surface normal / tangential by the same groups.
 
 With a checkpoint, on the first n trajectories of the split:
 - rollouts from S_0 with a point cloud every step and without: the squared error per free node split by
@@ -100,9 +101,12 @@ def data_report(dataset: str, data_dir: str | None, split: str, count: int, near
         raise ValueError(f"{dataset}/{split} has no trajectories")
     points, cover, neighbours, spacing = [], {g: [] for g in GROUPS}, [], []
     motion = {"all": [], "near_finger": []}
-    top = []
+    top, displacement = [], []
     for traj in trajs:
         groups = per_step_groups(traj, near, finger)
+        held = np.repeat(traj.positions[:1], traj.num_steps, axis=0)  # S_0 held: its error is the displacement
+        displacement.append(split_error(held, traj.positions, boundary_facets(traj.cells, traj.rest_positions), groups,
+                                        range(1, traj.num_steps)))
         free = ~traj.fixed
         for t in range(traj.num_steps):
             cloud = traj.point_cloud(t)
@@ -132,7 +136,9 @@ def data_report(dataset: str, data_dir: str | None, split: str, count: int, near
               "points_within_radius_per_free_node": float(np.mean(neighbours)),
               "point_spacing_median": float(np.median(spacing)),
               "motion_rms_per_coordinate": {"all": rms(motion["all"]), "near_finger": rms(motion["near_finger"]),
-                                            "top_10_percent": rms(top)}}
+                                            "top_10_percent": rms(top)},
+              "displacement": {g: {k: float(np.mean([r[g][k] for r in displacement]))
+                                   for k in ("normal", "tangential", "total")} for g in GROUPS}}
     return report
 
 
@@ -234,7 +240,11 @@ def markdown(report: dict) -> str:
                   "RMS per-step motion per coordinate of the free nodes: "
                   + ", ".join(f"{k} {v:.5f}" for k, v in data["motion_rms_per_coordinate"].items())
                   + f"; training noise {data['training_noise']} is "
-                  f"{data['training_noise'] / data['motion_rms_per_coordinate']['all']:.1f}x the first", ""]
+                  f"{data['training_noise'] / data['motion_rms_per_coordinate']['all']:.1f}x the first", "",
+                  "true displacement from S_0 (squared, per free node-step and coordinate), normal / tangential "
+                  "to the true surface", "",
+                  markdown_table(list(GROUPS), [[f"{data['displacement'][g]['normal']:.3g} / "
+                                                 f"{data['displacement'][g]['tangential']:.3g}" for g in GROUPS]]), ""]
     model = report.get("model")
     if model:
         lines += [f"## Model: {model['model']} from {model['checkpoint']} ({model['split']}, {model['trajectories']} "

@@ -473,11 +473,14 @@ def _python_scalar(value):
 # The parts of a generator configuration that define what a trajectory is (the split sizes, seed,
 # output directory and worker count only say how many were made, where and how fast).
 DEFINING_SECTIONS = ("scene", "solver", "sensor")
+# Solver settings added after data was first generated, at the value that generated it (sim.solver.SolverConfig)
+SOLVER_DEFAULTS = {"friction": 0.0}
 
 
 def config_differences(stored: dict, expected: dict, sections=DEFINING_SECTIONS) -> list[str]:
     """Dotted keys under `sections` whose values differ between two generator configurations
-    (a key present on one side only differs too)."""
+    (a key present on one side only differs too, except a solver setting at its default, which a file
+    written before the setting existed does not name: `SOLVER_DEFAULTS`)."""
     def flat(d, prefix=""):
         if not isinstance(d, dict):
             return {prefix[:-1]: d}
@@ -488,7 +491,12 @@ def config_differences(stored: dict, expected: dict, sections=DEFINING_SECTIONS)
 
     a = flat({k: stored.get(k) for k in sections})
     b = flat({k: expected.get(k) for k in sections})
-    return sorted(k for k in a.keys() | b.keys() if a.get(k, "<absent>") != b.get(k, "<absent>"))
+    defaults = {f"solver.{k}": v for k, v in SOLVER_DEFAULTS.items()} if "solver" in sections else {}
+
+    def value(side: dict, key: str):
+        return side.get(key, defaults.get(key, "<absent>"))
+
+    return sorted(k for k in a.keys() | b.keys() if value(a, k) != value(b, k))
 
 
 def read_trajectories(path: str | os.PathLike, expected_config: dict | None = None) -> list[Trajectory]:

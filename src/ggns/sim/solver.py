@@ -13,7 +13,13 @@ definite), and an Armijo line search on Phi, so with a positive definite matrix 
 decreases the potential: unconditionally stable, no oscillation. The damping matrix D is the
 warped stiffness whatever the tangent (it is part of the model, not of the solver).
 Multiplier updates repeat until no node is inside a collider by more than the tolerance.
-Contact is node-to-surface and frictionless.
+Contact is node-to-surface, frictionless by default. With `SolverConfig.friction` mu > 0 the potential
+gains a lagged, smoothed Coulomb term (as in incremental-potential contact): for each node the previous
+step ended in contact with a collider, with that step's normal force N and normal n,
+    F(x) = sum_i mu N_i f(|T_i u_i|),  u_i = (x_i - x_n,i) - (collider displacement at node i),
+T_i = I - n_i n_i^T and f(y) = y^2 / (2 eps) for y < eps, y - eps / 2 beyond, eps = friction_velocity h:
+sticking below a slip of eps per step, sliding with force mu N beyond. The collider's displacement at
+a node is that of its nearest collider vertex (exact for a translating collider).
 
 The linear algebra (matrix format, factorization) is a back end from `linalg` chosen by
 `SolverConfig.linear_solver`: dense Cholesky, sparse LDL^T or banded Cholesky; the Newton loop, line search,
@@ -58,6 +64,10 @@ class SolverConfig:
     # semi-definite, as at the rest shape. For scenes that wait at rest until a collider arrives
     # (the cavity); off by default so that existing presets regenerate bit for bit.
     skip_at_rest: bool = False
+    # Coulomb friction coefficient between the body and every collider (0: frictionless, as every shipped
+    # preset), and the slip speed below which contact sticks (m/s; the smoothing of the Coulomb cone)
+    friction: float = 0.0
+    friction_velocity: float = 1e-3
 
     def __post_init__(self) -> None:
         if not self.dt > 0:
@@ -70,6 +80,9 @@ class SolverConfig:
                              f"{SPARSE_MIN_FREE_DOFS} free unknowns on), got {self.linear_solver!r}")
         if self.tangent not in TANGENTS:
             raise ValueError(f"tangent must be one of {TANGENTS}, got {self.tangent!r}")
+        if not self.friction >= 0 or not self.friction_velocity > 0:
+            raise ValueError(f"friction must be >= 0 and friction_velocity > 0 m/s, got {self.friction} and "
+                             f"{self.friction_velocity}")
 
 
 @dataclass
@@ -113,6 +126,9 @@ class Simulator:
         extent = (body.X.amax(0) - body.X.amin(0)).norm().item()
         self.line_search_threshold = 1e-6 * extent  # smaller Newton steps are taken in full
         self.multipliers: list[torch.Tensor] = []  # per collider [N], warm-started over steps
+        # friction (config.friction > 0): per collider, the last step's (normal force [N], normal [N, d],
+        # collider vertices [K, d]) at its end
+        self.friction_lag: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
         self.projected_fallbacks = 0  # Newton iterations of tangent "exact" that took "projected"
         self.steps_taken = 0
 
@@ -141,6 +157,49 @@ class Simulator:
                 hess.append(active[:, None, None] * normal[:, :, None] * normal[:, None, :])
             phis.append(phi)
         return value, grad, hess, phis
+
+    def _friction_terms(self, x: torch.Tensor, colliders) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]:
+        """Per collider in contact at the last step's end: (nodes [M], mu N [M], tangent projector [M, d, d],
+        the collider's displacement at those nodes over this step [M, d])."""
+        if not self.config.friction > 0 or len(self.friction_lag) != len(colliders):
+            return []
+        terms = []
+        for (normal_force, normal, before), col in zip(self.friction_lag, colliders):
+            nodes = (normal_force > 0).nonzero().flatten()
+            if not len(nodes) or before.shape != col.vertices.shape:
+                continue
+            nearest = torch.cdist(x[nodes], before).argmin(1)
+            moved = col.vertices[nearest] - before[nearest]
+            n = normal[nodes]
+            project = torch.eye(x.shape[1], dtype=x.dtype) - n[:, :, None] * n[:, None, :]
+            terms.append((nodes, self.config.friction * normal_force[nodes], project, moved))
+        return terms
+
+    def _friction(self, y: torch.Tensor, x: torch.Tensor, terms, want_hessian: bool):
+        """The lagged friction potential F(y) of the step from x (module docstring): value, gradient [N, d],
+        Hessian blocks [N, d, d] (positive semi-definite) or None."""
+        eps = self.config.friction_velocity * self.config.dt
+        value, grad = y.new_zeros(()), torch.zeros_like(y)
+        hess = torch.zeros(y.shape + (y.shape[1],), dtype=y.dtype) if want_hessian else None
+        for nodes, mu_n, project, moved in terms:
+            u = torch.einsum("mij,mj->mi", project, y[nodes] - x[nodes] - moved)  # tangential slip
+            slip = u.norm(dim=1)
+            stick = slip < eps
+            value = value + (mu_n * torch.where(stick, slip**2 / (2 * eps), slip - eps / 2)).sum()
+            scale = mu_n / torch.where(stick, torch.full_like(slip, eps), slip)
+            grad.index_add_(0, nodes, scale[:, None] * u)
+            if want_hessian:
+                t = u / slip.clamp_min(1e-300)[:, None]
+                sliding = (~stick).to(y.dtype)[:, None, None] * t[:, :, None] * t[:, None, :]
+                hess.index_add_(0, nodes, scale[:, None, None] * (project - sliding))
+        return value, grad, hess
+
+    def _lag_friction(self, y: torch.Tensor, colliders) -> None:
+        """Keep this step's normal forces and normals at its end for the next step's friction."""
+        self.friction_lag = []
+        for lam, col in zip(self.multipliers, colliders):
+            phi, normal = signed_distance(y, col.vertices, col.faces)
+            self.friction_lag.append(((lam - self.contact_kappa * phi).clamp_min(0.0), normal, col.vertices.clone()))
 
     # ---- Newton core ------------------------------------------------------------------
     def _minimize(self, x: torch.Tensor, potential, gradient_hessian, what: str) -> tuple[torch.Tensor, int]:
@@ -219,11 +278,14 @@ class Simulator:
         D = body.material.rayleigh_stiffness * la.stiffness(R_start)
         D = D + la.diag(body.material.rayleigh_mass * self.mass_dofs)
         Hconst = D / h + la.diag(self.mass_dofs / h**2)
+        friction = self._friction_terms(x, colliders)
 
         def potential(y):
             dy, dn = (y - x_pred).reshape(-1), (y - x).reshape(-1)
             value = 0.5 * (self.mass_dofs * dy * dy).sum() / h**2 + dn @ la.matvec(D, dn) / (2 * h)
             value = value + body.energy(y) - (self.gravity_force * y).sum()
+            if friction:
+                value = value + self._friction(y, x, friction, False)[0]
             return value + self._contact(y, colliders, False)[0]
 
         def gradient_hessian(y, tangent):
@@ -234,6 +296,9 @@ class Simulator:
             H = Hconst + la.assemble(K)
             for blocks in hc:
                 H = la.add_node_blocks(H, blocks)
+            if friction:
+                _, gf, hf = self._friction(y, x, friction, True)
+                g, H = g + gf, la.add_node_blocks(H, hf)
             return g + gc, H
 
         newton_total, y = 0, x_pred
@@ -251,6 +316,8 @@ class Simulator:
                 f"{cfg.contact_tolerance:.1e} m after {cfg.max_contact_iterations} contact iterations"
             )
         work = -(gc * (y - x)).sum().item()  # contact force = -gradient of C
+        if self.config.friction > 0:
+            self._lag_friction(y, colliders)
         v_new = (y - x) / h
         if not (torch.isfinite(y).all() and torch.isfinite(v_new).all()):
             raise SimulationError(f"{what}: non-finite state")

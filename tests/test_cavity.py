@@ -252,6 +252,9 @@ def test_the_cavity_diagnosis_script_splits_by_wall_and_reports_finite_numbers(t
     val = read_trajectories(f"{config['output']}/val.h5")[:2]
     motion = np.concatenate([np.diff(t.positions, axis=0)[:, ~t.fixed].ravel() for t in val])
     assert report["model"]["one_step_mse"]["no_motion"] == pytest.approx(float(np.mean(motion ** 2)), rel=1e-5)
+    # the data part's split of the true displacement is the model part's static row
+    for group, parts in report["data"][0]["displacement"].items():
+        assert parts == pytest.approx(report["model"]["rollout"]["static"][group], rel=1e-9), group
 
     def numbers(x):
         if isinstance(x, dict):

@@ -82,7 +82,7 @@ from ggns.config import CONF_DIR
 Path("tiny12.yaml").write_text(f"base: {CONF_DIR / 'data' / 'plate_tiny.yaml'}\nscene:\n  num_steps: 12\n"
                                "output: data/plate_tiny12\n")
 run("generate", "--config", "tiny12.yaml", "--split", "train,val", "--count", "2")
-run("generate", "--config", "plate", "--split", "test", "--count", "1", "--output", "data/plate")
+run("generate", "--config", "plate", "--split", "test", "--count", "1", "--output", "data/plate", "--workers", "1")
 run("rollout", "--checkpoint", "plate/ggns", "--input", "data/plate/test.h5", "--output", "predictions.h5")
 run("fit", "--config", "plate/mgn", "--data.dataset", "tiny12.yaml", "--data.data_dir", "data/plate_tiny12",
     "--trainer.fast_dev_run", "true", "--model.init_args.latent", "8", "--model.init_args.blocks", "1")

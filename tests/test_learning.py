@@ -166,18 +166,19 @@ def test_the_shipped_learning_file_parses(tmp_path):
             assert cli.datamodule.batch_size == 4 and cli.trainer.val_check_interval == 200
 
 
-@pytest.mark.parametrize("name", sorted(p.stem for p in preset_files("learning") if p.stem.startswith("tissue_")))
+@pytest.mark.parametrize("name", sorted(p.stem for p in preset_files("learning") if p.stem.startswith(("tissue_", "cavity_"))))
 def test_every_variant_of_the_tissue_learning_files_parses(name, tmp_path):
-    """Each variant of each tissue learning file builds through the Lightning CLI with its arguments
+    """Each variant of each tissue and cavity learning file builds through the Lightning CLI with its arguments
     (option names, values, class switches such as GGNS(M)); nothing is trained."""
+    task = name.split("_")[0]
     from ggns.cli import build_cli
 
     for run in variant_runs(load_learning(name, [f"output={tmp_path}"])):
         argv = ["--config", run.config, "--seed_everything", str(run.seed),
                 "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
         cli = build_cli(argv, run=False)
-        assert cli.model.hparams.dim == 3 and cli.model.hparams.connectivity.startswith("tissue_")
-        assert cli.datamodule.hparams.dataset == "tissue_cpu"
+        assert cli.model.hparams.dim == 3 and cli.model.hparams.connectivity.startswith(f"{task}_")
+        assert cli.datamodule.hparams.dataset == f"{task}_cpu"
 
 
 @pytest.mark.parametrize("name", ["plate_cpu_reach", "plate_cpu_reach_mgn"])

@@ -26,7 +26,7 @@ import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 from omegaconf import OmegaConf
 
@@ -117,9 +117,20 @@ def fit_variant(run: Run, threads: int | None = None, log=print, launch: Launch 
     return run
 
 
-def run_learning(spec: dict, only: Sequence[str] | None = None, log=print, launch: Launch = launch_process) -> Path:
+def run_learning(spec: dict, only: Sequence[str] | None = None, log: Callable[[str], None] = print,
+                 launch: Launch = launch_process) -> Path:
     """Fit the variants (`only` these names, else all; `parallel` at once; each through `launch`, see
-    `fit_variant`), then `write_report`."""
+    `fit_variant`), then `write_report`.
+
+    Args:
+        spec: a loaded learning file (`load_learning`).
+        only: names of the variants to fit; None: all.
+        log: called with one line per fit and skip.
+        launch: how each fit command runs (`ggns.experiments.sweep.Launch`; default its own process).
+
+    Returns:
+        the report's path, <output>/learning.md.
+    """
     runs = variant_runs(spec)
     if only:
         unknown = sorted(set(only) - {r.model for r in runs})

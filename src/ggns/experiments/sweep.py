@@ -259,11 +259,21 @@ that takes its stdout and stderr, its environment) -> its exit status (negative:
 
 
 def launch_process(command: list[str], out: IO[str], env: dict[str, str]) -> int:
-    """The default `Launch`: `command` as its own process, waited for."""
+    """The default `Launch`: `command` as its own process, waited for.
+
+    Args:
+        command: the full command line, `[sys.executable, "-m", "ggns", "fit" | "test", ...]`.
+        out: the run's open log file; the process writes its stdout and stderr there.
+        env: the process's whole environment (the sweep sets OMP_NUM_THREADS in it).
+
+    Returns:
+        the exit status: 0 on success, negative when a signal killed it.
+    """
     return subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, env=env).returncode
 
 
-def execute(run: Run, threads: int | None = None, log=print, launch: Launch = launch_process) -> Run:
+def execute(run: Run, threads: int | None = None, log: Callable[[str], None] = print,
+            launch: Launch = launch_process) -> Run:
     """fit (resuming a left-over last.ckpt) then the test parts, merged; a finished run is skipped,
     and so is the fit once it has ended (`FIT_ENDED`, written when its process returned 0) or a test
     part has finished (the fit ended before the tests began): a sweep killed during its tests does not
@@ -339,9 +349,20 @@ def prepare_datasets(runs: list[Run], log=print) -> list[str]:
     return checked
 
 
-def run_sweep(sweep: dict, task: int | None = None, log=print, launch: Launch = launch_process) -> list[Run]:
+def run_sweep(sweep: dict, task: int | None = None, log: Callable[[str], None] = print,
+              launch: Launch = launch_process) -> list[Run]:
     """All runs (`parallel` at once, after `prepare_datasets`) or only job-array task `task`, each command
-    through `launch` (see `execute`). Returns the runs executed."""
+    through `launch` (see `execute`).
+
+    Args:
+        sweep: a loaded sweep file (`load_sweep`).
+        task: only this run (a SLURM array task's index into `runs_of(sweep)`); None: all of them.
+        log: called with one line per fit, test and skip.
+        launch: how each fit and test command runs (`Launch`; default `launch_process`).
+
+    Returns:
+        the runs executed (finished ones included, skipped), each with its merged test metrics written.
+    """
     runs = runs_of(sweep)
     if task is not None:
         if not 0 <= task < len(runs):

@@ -134,11 +134,12 @@ class Simulator:
 
     # ---- assembly -------------------------------------------------------------------
     def _contact(self, x: torch.Tensor, colliders: list[Collider], want_hessian: bool):
-        """AL contact term: value, gradient [N, d], Gauss-Newton Hessian blocks, per-collider phi."""
+        """AL contact term: value, gradient [N, d], Gauss-Newton Hessian blocks, and per collider phi [N]
+        and the normals [N, d] (inf and zero at nodes outside its bounding box without a multiplier)."""
         value = x.new_zeros(())
         grad = torch.zeros_like(x)
         hess = [] if want_hessian else None
-        phis = []
+        phis, normals = [], []
         kappa = self.contact_kappa
         for lam, col in zip(self.multipliers, colliders):
             # nodes outside the collider's bounding box are outside the collider (phi > 0):
@@ -156,7 +157,8 @@ class Simulator:
                 active = (force > 0).to(x.dtype) * kappa
                 hess.append(active[:, None, None] * normal[:, :, None] * normal[:, None, :])
             phis.append(phi)
-        return value, grad, hess, phis
+            normals.append(normal)
+        return value, grad, hess, phis, normals
 
     def _friction_terms(self, x: torch.Tensor, colliders) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]:
         """Per collider in contact at the last step's end: (nodes [M], mu N [M], tangent projector [M, d, d],
@@ -194,12 +196,11 @@ class Simulator:
                 hess.index_add_(0, nodes, scale[:, None, None] * (project - sliding))
         return value, grad, hess
 
-    def _lag_friction(self, y: torch.Tensor, colliders) -> None:
-        """Keep this step's normal forces and normals at its end for the next step's friction."""
-        self.friction_lag = []
-        for lam, col in zip(self.multipliers, colliders):
-            phi, normal = signed_distance(y, col.vertices, col.faces)
-            self.friction_lag.append(((lam - self.contact_kappa * phi).clamp_min(0.0), normal, col.vertices.clone()))
+    def _lag_friction(self, phis, normals, colliders) -> None:
+        """Keep this step's normal forces and normals at its end (`_contact` at the accepted positions)
+        for the next step's friction."""
+        self.friction_lag = [((lam - self.contact_kappa * phi).clamp_min(0.0), normal, col.vertices.clone())
+                             for lam, phi, normal, col in zip(self.multipliers, phis, normals, colliders)]
 
     # ---- Newton core ------------------------------------------------------------------
     def _minimize(self, x: torch.Tensor, potential, gradient_hessian, what: str) -> tuple[torch.Tensor, int]:
@@ -292,7 +293,7 @@ class Simulator:
             ge, K = body.gradient_hessian(y, tangent)
             dn = (y - x).reshape(-1)
             g = M * (y - x_pred) / h**2 + ge - self.gravity_force + la.matvec(D, dn).view_as(y) / h
-            _, gc, hc, _ = self._contact(y, colliders, True)
+            _, gc, hc, _, _ = self._contact(y, colliders, True)
             H = Hconst + la.assemble(K)
             for blocks in hc:
                 H = la.add_node_blocks(H, blocks)
@@ -305,7 +306,7 @@ class Simulator:
         for contact_it in range(1, cfg.max_contact_iterations + 1):
             y, its = self._minimize(y, potential, gradient_hessian, what)
             newton_total += its
-            _, gc, _, phis = self._contact(y, colliders, False)
+            _, gc, _, phis, normals = self._contact(y, colliders, False)
             penetration = max([0.0] + [(-phi[self.free.view_as(x)[:, 0]]).max().item() for phi in phis])
             if penetration <= cfg.contact_tolerance:
                 break
@@ -317,7 +318,7 @@ class Simulator:
             )
         work = -(gc * (y - x)).sum().item()  # contact force = -gradient of C
         if self.config.friction > 0:
-            self._lag_friction(y, colliders)
+            self._lag_friction(phis, normals, colliders)
         v_new = (y - x) / h
         if not (torch.isfinite(y).all() and torch.isfinite(v_new).all()):
             raise SimulationError(f"{what}: non-finite state")
@@ -334,7 +335,7 @@ class Simulator:
         if len(self.multipliers) and any((lam > 0).any() for lam in self.multipliers):
             return False
         ge, _ = self.body.gradient(x)
-        _, gc, _, _ = self._contact(x, colliders, False)
+        _, gc, _, _, _ = self._contact(x, colliders, False)
         if gc.abs().max() > 0:
             return False
         g = (ge - self.gravity_force).reshape(-1)[self.free]

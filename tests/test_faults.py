@@ -1,4 +1,5 @@
-"""Fault injection with real processes and real signals (issue 23): a generator killed with SIGKILL
+"""Fault injection with real processes and real signals (issue 23; each `python -m ggns` command a process of
+its own, forked from a server that imported ggns once, tests/forked.py): a generator killed with SIGKILL
 at seeded points resumes, on the same command, to a split whose arrays are bit for bit those of an
 uninterrupted run; what the killed run left (finished parts, a writer's temporary file, a part
 truncated on disk) is reused when whole and removed otherwise, never read as complete."""
@@ -20,6 +21,7 @@ from ggns.config import load_config
 from ggns.data.generate import generate, regenerate, split_path
 from ggns.data.resume import SplitParts, remove_stale_partials
 from ggns.data.schema import DatasetError, SplitReader, content_hash
+import forked
 from kill_points import HOOKS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,7 +51,7 @@ def _parts(out: Path) -> list[Path]:
 @pytest.mark.parametrize("after", KILL_POINTS)
 def test_a_generator_killed_with_sigkill_resumes_to_identical_arrays(tmp_path, uninterrupted, after):
     out = tmp_path / "out"
-    proc = subprocess.Popen(_command(out), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = forked.start(_command(out), tmp_path / "killed", cwd=ROOT)
     deadline = time.time() + 120
     while len(_parts(out)) < after and proc.poll() is None and time.time() < deadline:
         time.sleep(0.01)
@@ -61,7 +63,7 @@ def test_a_generator_killed_with_sigkill_resumes_to_identical_arrays(tmp_path, u
     # what a crash can leave besides: a dead writer's temporary file and a part cut short on disk
     (out / ".train.h5.parts" / f".{COUNT - 1:06d}.h5.partial-{proc.pid}").write_bytes(b"half a trajectory")
     kept[0].write_bytes(kept[0].read_bytes()[:1000])
-    rerun = subprocess.run(_command(out), cwd=ROOT, capture_output=True, text=True)
+    rerun = forked.run(_command(out), tmp_path / "rerun", cwd=ROOT)
     assert rerun.returncode == 0, rerun.stderr
     assert f"resuming with {len(kept) - 1} of {COUNT}" in rerun.stdout + rerun.stderr
     assert "unreadable" in rerun.stdout + rerun.stderr  # the truncated part, made again
@@ -97,7 +99,7 @@ def test_a_live_writers_temporary_file_is_left_alone(tmp_path):
         SplitReader(live)
 
 
-# ---- fit: SIGKILL at seeded points of a real `python -m ggns fit`, then the same command resumes --------------
+# ---- fit: SIGKILL at seeded points of a `python -m ggns fit` process (forked, tests/forked.py), then the same command resumes
 FIT_STEPS = 15  # 3 epochs x 5 batches (33 windows of cli_data in batches of 8: the last batch holds 1)
 # (hook, global step) of each kill: seeded, one per hook; checkpoints every 3 steps, so most kills lose steps
 FIT_KILLS = list(zip(HOOKS, random.Random(230).sample(range(1, FIT_STEPS - 1), len(HOOKS))))
@@ -134,13 +136,15 @@ def _fit_command(data, logs, version: str, resume: Path | None = None, extra: tu
             *(["--ckpt_path", str(resume)] if resume is not None else [])]
 
 
-def _fit(command: list[str], kill: tuple[str, int] | None = None, env: dict | None = None) -> subprocess.CompletedProcess:
-    env = {**os.environ, **(env or {}),
-           "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")]), "OMP_NUM_THREADS": "1"}
+def _fit(command: list[str], output: Path, kill: tuple[str, int] | None = None,
+         env: dict | None = None) -> subprocess.CompletedProcess:
+    """`command` as a process of its own, forked from the preloaded server (tests/forked.py), its stdout and
+    stderr kept in the fresh directory `output`; kill: GGNS_KILL_AT's (hook, step)."""
+    env = {**os.environ, **(env or {}), "OMP_NUM_THREADS": "1"}
     env.pop("GGNS_KILL_AT", None)
     if kill is not None:
         env["GGNS_KILL_AT"] = f"{kill[0]}:{kill[1]}"
-    return subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    return forked.run(command, output, env=env, cwd=ROOT, timeout=300)
 
 
 def _losses(run: Path) -> dict[int, float]:
@@ -185,11 +189,11 @@ def test_a_fit_killed_with_sigkill_at_each_hook_resumes_to_the_same_weights_and_
     last = tmp_path / "ggns" / "run" / "checkpoints" / "last.ckpt"
     for kill in sorted(FIT_KILLS, key=lambda k: k[1]):
         resume = last if last.is_file() else None
-        killed = _fit(_fit_command(cli_data, tmp_path, "run", resume=resume), kill=kill)
+        killed = _fit(_fit_command(cli_data, tmp_path, "run", resume=resume), tmp_path / f"killed_{kill[1]}", kill=kill)
         assert killed.returncode == -signal.SIGKILL, (kill, killed.stderr[-3000:])
         resumed_from = torch.load(last, weights_only=True)["global_step"] if last.is_file() else 0
         assert resumed_from <= kill[1], kill
-    rerun = _fit(_fit_command(cli_data, tmp_path, "run", resume=last if last.is_file() else None))
+    rerun = _fit(_fit_command(cli_data, tmp_path, "run", resume=last if last.is_file() else None), tmp_path / "rerun")
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     final = torch.load(last, weights_only=True)
     assert final["global_step"] == FIT_STEPS
@@ -223,12 +227,12 @@ def test_a_fit_stopped_by_a_slurm_time_limit_requeues_and_resumes_from_the_hpc_c
              "SLURM_NODELIST": "localhost", "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
     step = random.Random(2310).randrange(1, FIT_STEPS - 1)
     command = _fit_command(cli_data, tmp_path, "run", extra=("--trainer.default_root_dir", str(root)))
-    killed = _fit(command, kill=(REQUEUE, step), env=slurm)
+    killed = _fit(command, tmp_path / "killed", kill=(REQUEUE, step), env=slurm)
     assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
     assert (tmp_path / "scontrol.calls").read_text().split() == ["requeue", "4242"]
     hpc = torch.load(root / "hpc_ckpt_1.ckpt", weights_only=True)
     assert hpc["global_step"] == step and "ggns_rng_states" in hpc
-    rerun = _fit(command, env=slurm)
+    rerun = _fit(command, tmp_path / "requeued", env=slurm)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     assert "hpc_ckpt_1.ckpt" in rerun.stdout + rerun.stderr  # Lightning says what it restored
     final = torch.load(tmp_path / "ggns" / "run" / "checkpoints" / "last.ckpt", weights_only=True)
@@ -315,12 +319,13 @@ def _sweep_file(tmp_path: Path, data: Path) -> Path:
     return path
 
 
-def _sweep(path: Path, kill_when=None) -> int:
-    """`python -m ggns sweep --config path` in its own process group; SIGKILL to the whole group (the sweep
-    and the fit or test it runs, as a cluster does to a job) once kill_when() holds. Returns the status."""
-    proc = subprocess.Popen([sys.executable, "-m", "ggns", "sweep", "--config", str(path)], cwd=ROOT,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
-                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+def _sweep(path: Path, output: Path, kill_when=None) -> int:
+    """`python -m ggns sweep --config path` in its own session and process group (forked from the preloaded
+    server, tests/forked.py; the fits and tests it runs are processes started from scratch); SIGKILL to the
+    whole group (the sweep and the fit or test it runs, as a cluster does to a job) once kill_when() holds.
+    Returns the status."""
+    proc = forked.start([sys.executable, "-m", "ggns", "sweep", "--config", str(path)], output, cwd=ROOT,
+                        env={**os.environ, "OMP_NUM_THREADS": "1"}, new_session=True)
     deadline = time.time() + 300
     while kill_when is not None and proc.poll() is None and time.time() < deadline:
         if kill_when():
@@ -344,12 +349,12 @@ def test_a_sweep_killed_mid_fit_and_mid_test_finishes_with_the_uninterrupted_met
     path = _sweep_file(tmp_path / "killed", cli_data)
     run = tmp_path / "killed" / "sweep" / "mgn"
     last = run / "seed_0" / "checkpoints" / "last.ckpt"
-    assert _sweep(path, kill_when=last.is_file) == -signal.SIGKILL
+    assert _sweep(path, tmp_path / "sweep_1", kill_when=last.is_file) == -signal.SIGKILL
     assert torch.load(last, weights_only=True)["global_step"] < 4  # killed before the fit's end
     tests = run / "seed_0_test"
-    assert _sweep(path, kill_when=lambda: tests.is_dir() and any(tests.iterdir())) == -signal.SIGKILL
+    assert _sweep(path, tmp_path / "sweep_2", kill_when=lambda: tests.is_dir() and any(tests.iterdir())) == -signal.SIGKILL
     assert not (tests / "test_metrics.json").exists()
-    assert _sweep(path) == 0
+    assert _sweep(path, tmp_path / "sweep_3") == 0, (tmp_path / "sweep_3" / "stderr").read_text()[-3000:]
     # the fit ran twice (killed, resumed); the rerun after the kill in the tests did not start it again
     assert (run / "seed_0" / "fit_ended").is_file() and len(list((run / "seed_0").glob("events.out.*"))) == 2
     metrics = json.loads((tests / "test_metrics.json").read_text())

@@ -2,15 +2,15 @@
 (tests/test_faults.py): a forkserver that imported ggns's command line, Lightning and torch once forks
 one child per command, and the child runs `ggns.__main__.main` on the command's arguments, with the
 command's environment and working directory, its stdout and stderr in files. The child is a process
-of its own: its own pid, exit status and signals (a SIGKILL ends it where it is, a kill of its
-process group ends what it started), its own memory; only the imports are shared, saved about 10 s
+of its own: its own pid, exit status and signals (a SIGKILL ends it where it is), its own memory; only the imports are shared, saved about 10 s
 per command on the 2-core machine (the start-up of `python -m ggns fit` is mostly imports,
 docs/results/test_durations/import_time.txt). The checkpoints, logs and parts that the tests compare
 are written by the child and read back from disk, as with a process started from scratch.
 
 Not covered here, and so left to real start-ups elsewhere: the interpreter's own start (`python -m
 ggns` resolving the package; test_cli, test_install), what a process inherits besides its environment
-(test_distributed's DDP ranks, test_bad_input's sweep and bench learning fits)."""
+(test_distributed's DDP ranks, test_bad_input's sweep and bench learning fits), and the killed sweep of
+test_faults (its process imports little, and forked it was slower)."""
 from __future__ import annotations
 
 import multiprocessing
@@ -24,10 +24,8 @@ PRELOAD = ["ggns.__main__", "ggns.cli", "ggns.data.generate", "ggns.experiments.
            "forked"]
 
 
-def _main(argv: list[str], env: dict[str, str], cwd: str, stdout: str, stderr: str, new_session: bool) -> None:
+def _main(argv: list[str], env: dict[str, str], cwd: str, stdout: str, stderr: str) -> None:
     """The child: `python -m ggns <argv>` from here on; ends the process with main()'s exit status."""
-    if new_session:
-        os.setsid()
     os.environ.clear()
     os.environ.update(env)
     os.chdir(cwd)
@@ -88,11 +86,9 @@ class Child:
 _context = None
 
 
-def start(command: list[str], output: Path, env: dict[str, str] | None = None, cwd: str | Path | None = None,
-          new_session: bool = False) -> Child:
+def start(command: list[str], output: Path, env: dict[str, str] | None = None, cwd: str | Path | None = None) -> Child:
     """Fork `command` (`[sys.executable, "-m", "ggns", ...]`) from the forkserver; its stdout and stderr go to
-    files in `output` (a fresh directory per command). env: its whole environment (default: this one's);
-    new_session: a session and process group of its own (as `start_new_session=True`)."""
+    files in `output` (a fresh directory per command). env: its whole environment (default: this one's)."""
     global _context
     assert command[1:3] == ["-m", "ggns"], command
     if _context is None:
@@ -102,7 +98,7 @@ def start(command: list[str], output: Path, env: dict[str, str] | None = None, c
     output.mkdir(parents=True, exist_ok=False)
     stdout, stderr = output / "stdout", output / "stderr"
     process = _context.Process(target=_main, args=(command[3:], dict(os.environ if env is None else env),
-                                                   str(cwd or os.getcwd()), str(stdout), str(stderr), new_session))
+                                                   str(cwd or os.getcwd()), str(stdout), str(stderr)))
     process.start()
     return Child(process, command, stdout, stderr)
 

@@ -320,12 +320,14 @@ def _sweep_file(tmp_path: Path, data: Path) -> Path:
 
 
 def _sweep(path: Path, output: Path, kill_when=None) -> int:
-    """`python -m ggns sweep --config path` in its own session and process group (forked from the preloaded
-    server, tests/forked.py; the fits and tests it runs are processes started from scratch); SIGKILL to the
-    whole group (the sweep and the fit or test it runs, as a cluster does to a job) once kill_when() holds.
-    Returns the status."""
-    proc = forked.start([sys.executable, "-m", "ggns", "sweep", "--config", str(path)], output, cwd=ROOT,
-                        env={**os.environ, "OMP_NUM_THREADS": "1"}, new_session=True)
+    """`python -m ggns sweep --config path` in its own process group, its stdout and stderr in `output`; SIGKILL
+    to the whole group (the sweep and the fit or test it runs, as a cluster does to a job) once kill_when()
+    holds. Returns the status. Started from scratch, not forked (tests/forked.py): the sweep's own process
+    imports neither torch nor Lightning, and forked it made this test slower (docs/setup.md)."""
+    output.mkdir()
+    with open(output / "stdout", "w") as out, open(output / "stderr", "w") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "ggns", "sweep", "--config", str(path)], cwd=ROOT, stdout=out,
+                                stderr=err, start_new_session=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
     deadline = time.time() + 300
     while kill_when is not None and proc.poll() is None and time.time() < deadline:
         if kill_when():

@@ -2,15 +2,16 @@
 (tests/test_faults.py): a forkserver that imported ggns's command line, Lightning and torch once forks
 one child per command, and the child runs `ggns.__main__.main` on the command's arguments, with the
 command's environment and working directory, its stdout and stderr in files. The child is a process
-of its own: its own pid, exit status and signals (a SIGKILL ends it where it is), its own memory; only the imports are shared, saved about 10 s
-per command on the 2-core machine (the start-up of `python -m ggns fit` is mostly imports,
-docs/results/test_durations/import_time.txt). The checkpoints, logs and parts that the tests compare
-are written by the child and read back from disk, as with a process started from scratch.
+of its own: its own pid, exit status and signals (a SIGKILL ends it where it is), its own memory; only
+the imports are shared, which saves about 10 s of CPU per command on the 2-core machine (the start-up
+of `python -m ggns fit` is mostly imports, docs/results/test_durations/import_time.txt). The
+checkpoints, logs and parts that the tests compare are written by the child and read back from disk,
+as with a process started from scratch.
 
 Not covered here, and so left to real start-ups elsewhere: the interpreter's own start (`python -m
 ggns` resolving the package; test_cli, test_install), what a process inherits besides its environment
 (test_distributed's DDP ranks, test_bad_input's sweep and bench learning fits), and the killed sweep of
-test_faults (its process imports little, and forked it was slower)."""
+test_faults (its process imports little, and forked it saved nothing measurable)."""
 from __future__ import annotations
 
 import multiprocessing
@@ -72,8 +73,12 @@ class Child:
         return self.process.exitcode
 
     def wait(self, timeout: float | None = None) -> int:
+        """The exit status (negative: the signal that ended it); past `timeout` the child is killed, as
+        `subprocess.run` does, and TimeoutExpired raised."""
         self.process.join(timeout)
         if self.process.exitcode is None:
+            self.process.kill()
+            self.process.join()
             raise subprocess.TimeoutExpired(self.command, timeout)
         return self.process.exitcode
 

@@ -99,7 +99,8 @@ def test_a_live_writers_temporary_file_is_left_alone(tmp_path):
         SplitReader(live)
 
 
-# ---- fit: SIGKILL at seeded points of a `python -m ggns fit` process (forked, tests/forked.py), then the same command resumes
+# ---- fit: SIGKILL at seeded points of a `python -m ggns fit` process (forked: tests/forked.py), then the same
+# command resumes ---------------------------------------------------------------------------------------------
 FIT_STEPS = 15  # 3 epochs x 5 batches (33 windows of cli_data in batches of 8: the last batch holds 1)
 # (hook, global step) of each kill: seeded, one per hook; checkpoints every 3 steps, so most kills lose steps
 FIT_KILLS = list(zip(HOOKS, random.Random(230).sample(range(1, FIT_STEPS - 1), len(HOOKS))))
@@ -323,7 +324,7 @@ def _sweep(path: Path, output: Path, kill_when=None) -> int:
     """`python -m ggns sweep --config path` in its own process group, its stdout and stderr in `output`; SIGKILL
     to the whole group (the sweep and the fit or test it runs, as a cluster does to a job) once kill_when()
     holds. Returns the status. Started from scratch, not forked (tests/forked.py): the sweep's own process
-    imports neither torch nor Lightning, and forked it made this test slower (docs/setup.md)."""
+    imports neither torch nor Lightning, and forked it saved nothing measurable (docs/setup.md)."""
     output.mkdir()
     with open(output / "stdout", "w") as out, open(output / "stderr", "w") as err:
         proc = subprocess.Popen([sys.executable, "-m", "ggns", "sweep", "--config", str(path)], cwd=ROOT, stdout=out,
@@ -354,7 +355,8 @@ def test_a_sweep_killed_mid_fit_and_mid_test_finishes_with_the_uninterrupted_met
     assert _sweep(path, tmp_path / "sweep_1", kill_when=last.is_file) == -signal.SIGKILL
     assert torch.load(last, weights_only=True)["global_step"] < 4  # killed before the fit's end
     tests = run / "seed_0_test"
-    assert _sweep(path, tmp_path / "sweep_2", kill_when=lambda: tests.is_dir() and any(tests.iterdir())) == -signal.SIGKILL
+    in_tests = lambda: tests.is_dir() and any(tests.iterdir())  # noqa: E731
+    assert _sweep(path, tmp_path / "sweep_2", kill_when=in_tests) == -signal.SIGKILL
     assert not (tests / "test_metrics.json").exists()
     assert _sweep(path, tmp_path / "sweep_3") == 0, (tmp_path / "sweep_3" / "stderr").read_text()[-3000:]
     # the fit ran twice (killed, resumed); the rerun after the kill in the tests did not start it again

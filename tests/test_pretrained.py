@@ -35,7 +35,7 @@ def test_every_entry_of_the_spec_is_shipped():
     assert SHIPPED == sorted(load_spec()["entries"])
 
 
-# test trajectories regenerated per data preset: 2, but 1 of the cavity (about 30 s of simulation and
+# test trajectories regenerated per data preset: 2, but 1 of the cavity (about 25 s of simulation and
 # raycasting each on one core)
 REGENERATED = {"cavity_cpu": 1}
 

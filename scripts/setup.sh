@@ -62,7 +62,9 @@ if ! "$VENV/bin/python" -c "import torch_cluster" 2>/dev/null; then
     tar -xzf "$WORK"/torch_cluster-1.6.3.tar.gz -C "$WORK"
     if [ "$TORCH_CLUSTER_OPS" != all ]; then
       # shellcheck disable=SC2086
-      "$VENV/bin/python" scripts/torch_cluster_subset.py "$WORK/torch_cluster-1.6.3" $TORCH_CLUSTER_OPS
+      # one translation unit per core, not one or two per extension: torch's headers are most of each
+      # file's 40 s (docs/setup.md)
+      "$VENV/bin/python" scripts/torch_cluster_subset.py "$WORK/torch_cluster-1.6.3" $TORCH_CLUSTER_OPS --units "$(nproc)"
     fi
     mkdir -p "$CACHED"
     DIST_EXTRA_CONFIG="$WORK/build.cfg" MAX_JOBS=$(nproc) $PIP wheel -q --no-deps --no-build-isolation \

@@ -266,27 +266,52 @@ def save_untrained(model, path):
 # ---- scheduling on several test processes (`make test`: pytest-xdist, --dist loadgroup) -------------------------
 # Each test file runs whole in one process, so that its module fixtures (generated data, trained models) are
 # built once; the files sharing the tiny registry (a session fixture that trains three simulators) run in one
-# process too. The tests that take longest (each starts several real processes) come first, so that the last
-# minutes are not one process finishing a long test while the others idle.
-SLOW_FIRST = (
-    "test_a_sweep_killed_mid_fit_and_mid_test_finishes_with_the_uninterrupted_metrics",
-    "test_two_seed_sweep_runs_skips_and_resumes",
-    "test_two_ddp_processes_train_as_one_with_twice_the_batch",
-    "test_two_tiny_variants_end_to_end_and_resume",
-    "test_the_wheel_works_from_a_folder_outside_the_checkout",
-    "test_shipped_simulator_loads_and_reproduces_its_manifest",
-    "test_the_demo_runs_end_to_end_on_tiny_sizes",
-)
+# process too. The groups are handed out longest first (a longest-processing-time schedule), so that the last
+# minutes are not one process finishing a long group while the other idles; xdist's own reordering (by the
+# number of tests in a group) is turned off for it. GROUP_SECONDS: each group's wall time in a `make test`
+# run (GGNS_TEST_TIMELINE below; docs/results/test_durations/), the groups not named here after them.
+GROUP_SECONDS = {
+    "test_faults.py": 101, "tiny_registry": 90, "test_bad_input.py": 44, "test_sweep.py": 42, "test_learning.py": 40,
+    "test_cavity.py": 40, "test_distributed.py": 36, "test_cli.py": 33, "test_tissue.py": 29, "test_install.py": 27,
+    "test_hotpath.py": 14, "test_stream.py": 13, "test_tradeoff.py": 13, "test_stability.py": 12,
+    "test_simulators.py": 11, "test_sim_extremes.py": 8, "test_generate.py": 8, "test_sensor.py": 7,
+    "test_sweep_figures.py": 7, "test_sim_physics.py": 7, "test_viz.py": 7, "test_own_data.py": 5,
+}
 SHARED_GROUPS = {"test_demo.py": "tiny_registry", "test_pretrained.py": "tiny_registry",
                  "test_scripts.py": "test_simulators.py"}  # the latter: one tiny_data_dir for both
 
 
+def pytest_configure(config):
+    if hasattr(config.option, "loadscopereorder"):  # pytest-xdist: keep the order below
+        config.option.loadscopereorder = False
+
+
+def _group(item) -> str:
+    return SHARED_GROUPS.get(item.path.name, item.path.name)
+
+
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups
 def pytest_collection_modifyitems(config, items):
-    def rank(item) -> int:
-        return next((i for i, name in enumerate(SLOW_FIRST) if item.name.startswith(name)), len(SLOW_FIRST))
-
-    items.sort(key=rank)  # stable: the rest keep their order
+    items.sort(key=lambda item: -GROUP_SECONDS.get(_group(item), 0))  # stable: a group's tests keep their order
     for item in items:
-        name = item.path.name
-        item.add_marker(pytest.mark.xdist_group(SHARED_GROUPS.get(name, name)))
+        item.add_marker(pytest.mark.xdist_group(_group(item)))
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """With GGNS_TEST_TIMELINE=<file>, one JSON line per test (its set-up, call and teardown): test process,
+    test id, start and end (seconds since the epoch) and the test process's CPU seconds, to measure the
+    groups' times above."""
+    path = os.environ.get("GGNS_TEST_TIMELINE")
+    if not path:
+        yield
+        return
+    import json
+    import time
+
+    start, cpu = time.time(), time.process_time()
+    yield
+    line = {"process": os.environ.get("PYTEST_XDIST_WORKER", "main"), "test": item.nodeid, "start": start,
+            "end": time.time(), "cpu": time.process_time() - cpu}
+    with open(path, "a") as out:
+        out.write(json.dumps(line) + "\n")

@@ -58,6 +58,36 @@ def test_only_the_chosen_extensions_are_built_and_loaded(tmp_path):
     assert loaded == ["_knn", "_radius", "_version"]
 
 
+def test_units_put_several_extensions_in_one_file_each_registrar_renamed(tmp_path):
+    root = source_tree(tmp_path)
+    for op in ("version", "radius", "knn"):
+        (root / "csrc" / f"{op}.cpp").write_text(f"// {op}\nstatic auto registry =\n    op({op!r});\n")
+    (root / "csrc" / "cpu").mkdir()
+    for op in ("radius", "knn"):
+        (root / "csrc" / "cpu" / f"{op}_cpu.cpp").write_text(f"// {op} on the CPU\n")
+    assert run(root, "version", "radius", "knn", "--units", "2").returncode == 0
+    csrc = root / "csrc"
+    assert (csrc / "knn.cpp").read_text().splitlines()[1:] == [
+        '#include "knn_src.cpp"', '#include "cpu/knn_cpu_src.cpp"', '#include "version_src.cpp"']
+    assert (csrc / "radius.cpp").read_text().splitlines()[1:] == [
+        '#include "radius_src.cpp"', '#include "cpu/radius_cpu_src.cpp"']
+    assert not (csrc / "version.cpp").exists() and not (csrc / "cpu" / "knn_cpu.cpp").exists()
+    assert "static auto registry_version =" in (csrc / "version_src.cpp").read_text()
+    assert (csrc / "cpu" / "radius_cpu_src.cpp").read_text() == "// radius on the CPU\n"
+    loaded: list[str] = []
+    exec((root / "torch_cluster" / "__init__.py").read_text(), {"loaded": loaded})
+    assert loaded == ["_knn", "_radius"]  # version's operator is registered by _knn
+    assert "1.6.3+ops.knn.radius.version" in (root / "setup.py").read_text()
+
+
+def test_units_refuse_sources_they_cannot_rename_and_change_nothing(tmp_path):
+    root = source_tree(tmp_path)  # empty C++ files: no registrar to rename
+    result = run(root, "version", "radius", "--units", "2")
+    assert result.returncode != 0 and "expected one 'static auto registry ='" in result.stderr
+    assert sorted(p.name for p in (root / "csrc").iterdir()) == sorted(
+        f"{name}.cpp" for name in ("version", "grid", "graclus", "fps", "rw", "sampler", "nearest", "knn", "radius"))
+
+
 def test_unknown_sources_or_operators_change_nothing(tmp_path):
     root = source_tree(tmp_path)
     for args, message in ((["version", "radius", "voronoi"], "unknown ['voronoi']"), (["radius"], "include 'version'")):

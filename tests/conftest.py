@@ -266,42 +266,24 @@ def save_untrained(model, path):
 # ---- scheduling on several test processes (`make test`: pytest-xdist, --dist loadgroup) -------------------------
 # Each test file runs whole in one process, so that its module fixtures (generated data, trained models) are
 # built once; the files sharing the tiny registry (a session fixture that trains three simulators) run in one
-# process too. The groups are handed out longest first (a longest-processing-time schedule), so that the last
-# minutes are not one process finishing a long group while the other idles; xdist's own reordering (by the
-# number of tests in a group) is turned off for it. GROUP_SECONDS: each group's wall time in a `make test`
-# run (GGNS_TEST_TIMELINE below; docs/results/test_durations/), the groups not named here after them.
-GROUP_SECONDS = {
-    "test_faults.py": 101, "tiny_registry": 90, "test_bad_input.py": 44, "test_sweep.py": 42, "test_learning.py": 40,
-    "test_cavity.py": 40, "test_distributed.py": 36, "test_cli.py": 33, "test_tissue.py": 29, "test_install.py": 27,
-    "test_hotpath.py": 14, "test_stream.py": 13, "test_tradeoff.py": 13, "test_stability.py": 12,
-    "test_simulators.py": 11, "test_sim_extremes.py": 8, "test_generate.py": 8, "test_sensor.py": 7,
-    "test_sweep_figures.py": 7, "test_sim_physics.py": 7, "test_viz.py": 7, "test_own_data.py": 5,
-}
+# process too. xdist hands the groups out in its own order (most tests first). Handing them out longest first
+# (measured with GGNS_TEST_TIMELINE below) made no difference measurable among run-to-run changes of 20 %
+# (docs/experiments/test_suite_time.md), so it is not done.
 SHARED_GROUPS = {"test_demo.py": "tiny_registry", "test_pretrained.py": "tiny_registry",
                  "test_scripts.py": "test_simulators.py"}  # the latter: one tiny_data_dir for both
 
 
-def pytest_configure(config):
-    if hasattr(config.option, "loadscopereorder"):  # pytest-xdist: keep the order below
-        config.option.loadscopereorder = False
-
-
-def _group(item) -> str:
-    return SHARED_GROUPS.get(item.path.name, item.path.name)
-
-
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups
 def pytest_collection_modifyitems(config, items):
-    items.sort(key=lambda item: -GROUP_SECONDS.get(_group(item), 0))  # stable: a group's tests keep their order
     for item in items:
-        item.add_marker(pytest.mark.xdist_group(_group(item)))
+        item.add_marker(pytest.mark.xdist_group(SHARED_GROUPS.get(item.path.name, item.path.name)))
 
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
     """With GGNS_TEST_TIMELINE=<file>, one JSON line per test (its set-up, call and teardown): test process,
-    test id, start and end (seconds since the epoch) and the test process's CPU seconds, to measure the
-    groups' times above."""
+    test id, start and end (seconds since the epoch) and the test process's CPU seconds: where a run's time
+    goes, per test and per test process."""
     path = os.environ.get("GGNS_TEST_TIMELINE")
     if not path:
         yield

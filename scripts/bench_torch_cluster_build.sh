@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# Build time of torch-cluster's extensions that ggns calls (version, radius, knn), as scripts/setup.sh builds
-# them, with and without `torch_cluster_subset.py --units $(nproc)` (docs/experiments/test_suite_time.md):
-# the sdist (pip's download) is built twice in temporary folders against .venv's torch, each C++ file's compile
-# timed by a wrapper around g++, then both builds' radius, radius_graph and knn compared on the same inputs.
+# Build time of torch-cluster's extensions that ggns calls (version, radius, knn) with and without
+# `torch_cluster_subset.py --units $(nproc)` (docs/experiments/test_suite_time.md): the sdist (pip's download) is
+# built twice in temporary folders against .venv's torch with `setup.py build_ext` and the parallel setting
+# scripts/setup.sh uses (it then packs a wheel, not timed here), each C++ file's compile timed by a wrapper around
+# g++; then both builds' radius, radius_graph and knn are compared on the same inputs.
 # Usage: bash scripts/bench_torch_cluster_build.sh > raw.txt
 set -euo pipefail
 cd "$(dirname "$0")/.."

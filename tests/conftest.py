@@ -267,7 +267,7 @@ def save_untrained(model, path):
 # Each test file runs whole in one process, so that its module fixtures (generated data, trained models) are
 # built once; the files sharing the tiny registry (a session fixture that trains three simulators) run in one
 # process too. xdist hands the groups out in its own order (most tests first). Handing them out longest first
-# (measured with GGNS_TEST_TIMELINE below) made no difference measurable among run-to-run changes of 20 %
+# (measured with GGNS_TEST_TIMELINE below) was not faster over four runs each, whose times varied by up to 25 %
 # (docs/experiments/test_suite_time.md), so it is not done.
 SHARED_GROUPS = {"test_demo.py": "tiny_registry", "test_pretrained.py": "tiny_registry",
                  "test_scripts.py": "test_simulators.py"}  # the latter: one tiny_data_dir for both

@@ -14,6 +14,7 @@ import yaml
 
 from conftest import TINY12, launch_in_process
 from ggns.__main__ import main
+from ggns.checkpoints import read_checkpoint
 from ggns.config import CONF_DIR, preset_files
 from ggns.experiments.curves import CLOCK, COLUMNS, late_slope, read_scalars, steps_to_threshold, variant_row
 from ggns.experiments.learning import FINISHED, load_learning, run_learning, variant_runs
@@ -81,8 +82,10 @@ def write_learning(tmp_path, data_dir) -> str:
             "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
     spec = {"output": str(tmp_path / "learning"), "minutes": 5, "val_every": 2, "seed": 0, "parallel": 2,
             "base": {"config": str(CONF_DIR / "plate" / "ggns.yaml"), "args": tiny},
-            "variants": {"paper": [], "decay": ["--model.init_args.lr_schedule.decay_rate", "0.5",
-                                                "--model.init_args.lr_schedule.decay_steps", "2"]}}
+            # the second variant is another model (MGN, its own config) with the base's arguments and its own
+            "variants": {"paper": [], "decay": {"config": str(CONF_DIR / "plate" / "mgn.yaml"),
+                                                "args": ["--model.init_args.lr_schedule.decay_rate", "0.5",
+                                                         "--model.init_args.lr_schedule.decay_steps", "2"]}}}
     path = tmp_path / "learning.yaml"
     path.write_text(yaml.safe_dump(spec, sort_keys=False))
     return str(path)
@@ -93,6 +96,8 @@ def test_two_tiny_variants_end_to_end_and_resume(cli_data, tmp_path):
     runs = variant_runs(spec)
     assert [r.model for r in runs] == ["paper", "decay"]
     assert "00:00:05:00" in runs[0].args and runs[1].args[-1] == "2"  # the budget first, the variant last
+    assert runs[0].config.endswith("ggns.yaml") and runs[1].config.endswith("mgn.yaml")
+    assert str(cli_data) in runs[1].args  # the base's arguments apply to a variant with its own config
     messages = []
     report = run_learning(spec, log=messages.append, launch=launch_in_process)
     output = tmp_path / "learning"
@@ -107,7 +112,11 @@ def test_two_tiny_variants_end_to_end_and_resume(cli_data, tmp_path):
         assert math.isfinite(float(row["rollout_mse_never_last"]))
     text = report.read_text()
     assert "Finished: 2 of 2 variants" in text and "| paper | `(base)` | 4 |" in text
-    assert "| decay | `--model.init_args.lr_schedule.decay_rate 0.5 --model.init_args.lr_schedule.decay_steps 2` | 4 |" in text
+    assert (f"| decay | `--config {CONF_DIR / 'plate' / 'mgn.yaml'} --model.init_args.lr_schedule.decay_rate 0.5 "
+            "--model.init_args.lr_schedule.decay_steps 2` | 4 |") in text
+    assert rows[0]["rollout_mse_k1_last"] and not rows[1]["rollout_mse_k1_last"]  # MGN has no point clouds
+    hparams = [read_checkpoint(r.fit_dir / "checkpoints" / "last.ckpt")["hyper_parameters"] for r in runs]
+    assert [h["eval_schedules"] for h in hparams] == [["every:1", "every:2", "every:5", "every:10", "never"], ["never"]]
     # the LearningRateMonitor of the CLI logged the scheduled lr of each of the 4 steps
     steps, _, lrs = read_scalars(runs[1].fit_dir)["train/lr"]
     assert steps.tolist() == [1, 2, 3, 4]
@@ -139,6 +148,10 @@ def test_bad_learning_files(tmp_path):
     good = {"output": "x", "minutes": 1, "val_every": 10, "base": {"config": str(CONF_DIR / "plate" / "mgn.yaml")},
             "variants": {"a": []}}
     for change, message in ((dict(variants={}), "at least one"), (dict(variants={"a": "--x"}), "list of CLI"),
+                            (dict(variants={"a": {"args": []}}), "needs `config`"),
+                            (dict(variants={"a": {"config": good["base"]["config"], "arg": []}}), r"unknown keys: \['arg'\]"),
+                            (dict(variants={"a": {"config": "gone.yaml"}}), "variant 'a'.s config gone.yaml not found"),
+                            (dict(variants={"a": {"config": good["base"]["config"], "args": "--x"}}), "list of CLI"),
                             (dict(minutes=0), "minutes"), (dict(val_every=0), "val_every"),
                             (dict(base={"config": "nope.yaml"}), "nope.yaml")):
         path.write_text(yaml.safe_dump({**good, **change}))

@@ -11,6 +11,10 @@ A learning file (conf/learning/<name>.yaml, a checkout's experiments/<experiment
     variants:                                   # name -> Lightning CLI arguments (after the base's)
       paper: []
       noise_0.005: ["--model.init_args.noise.std", "0.005"]
+      mgn: {config: conf/plate/mgn.yaml, args: []}  # or {config, args}: another model config
+
+A variant given as `{config, args}` fits its own config with the base's arguments and then its own, so
+different models (GGNS beside MGN) learn side by side within one budget.
 
 Each variant is one `python -m ggns fit` in its own process (`sweep.Run` builds the command), with
 the budget and validation arguments first, then the base's, then the variant's (later ones win),
@@ -65,9 +69,19 @@ def load_learning(name_or_path: str | Path, overrides: Sequence[str] = ()) -> di
         raise FileNotFoundError(f"{path}: base config {base['config']} not found")
     if not isinstance(spec["variants"], dict) or not spec["variants"]:
         raise ValueError(f"{path}: `variants` must map at least one name to a list of CLI arguments")
-    for name, args in spec["variants"].items():
+    for name, variant in spec["variants"].items():
+        args = variant
+        if isinstance(variant, dict):
+            unknown = sorted(set(variant) - {"config", "args"})
+            if "config" not in variant or unknown:
+                raise ValueError(f"{path}: variant {name!r} as a mapping needs `config` and may have `args` "
+                                 f"(unknown keys: {unknown})")
+            if not Path(variant["config"]).is_file():
+                raise FileNotFoundError(f"{path}: variant {name!r}'s config {variant['config']} not found")
+            args = variant.get("args", [])
         if not isinstance(args, list):
-            raise ValueError(f"{path}: variant {name!r} must be a list of CLI arguments, got {args!r}")
+            raise ValueError(f"{path}: variant {name!r} must be a list of CLI arguments or a mapping "
+                             f"{{config, args}}, got {variant!r}")
         if not name or "/" in name or name.startswith("."):
             raise ValueError(f"{path}: variant name {name!r} is not a directory name")
     if not float(spec["minutes"]) > 0:
@@ -83,6 +97,20 @@ def max_time(minutes: float) -> str:
     return f"{seconds // 86400:02d}:{seconds // 3600 % 24:02d}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
 
 
+def variant_config(spec: dict, name: str) -> tuple[str, list[str]]:
+    """The variant's model config (its own or the base's) and its arguments (after the base's)."""
+    variant = spec["variants"][name]
+    if isinstance(variant, dict):
+        return str(variant["config"]), [str(a) for a in variant.get("args", [])]
+    return str(spec["base"]["config"]), [str(a) for a in variant]
+
+
+def variant_change(spec: dict, name: str) -> list[str]:
+    """The report's `change` column: the variant's arguments, after `--config X` when it has its own."""
+    config, args = variant_config(spec, name)
+    return (["--config", config] if isinstance(spec["variants"][name], dict) else []) + args
+
+
 def variant_runs(spec: dict) -> list[Run]:
     """One fit per variant, in the file's order."""
     budget = ["--trainer.max_time", max_time(spec["minutes"]), "--trainer.max_epochs", "-1",
@@ -90,9 +118,9 @@ def variant_runs(spec: dict) -> list[Run]:
               "--trainer.check_val_every_n_epoch", "null",
               "--trainer.callbacks+=ggns.experiments.clock.TrainingClock"]
     base = [str(a) for a in spec["base"].get("args", [])]
-    return [Run(name, int(spec.get("seed", 0)), str(spec["base"]["config"]),
-                tuple(budget + base + [str(a) for a in args]), Path(spec["output"]))
-            for name, args in spec["variants"].items()]
+    configs = {name: variant_config(spec, name) for name in spec["variants"]}
+    return [Run(name, int(spec.get("seed", 0)), config, tuple(budget + base + args), Path(spec["output"]))
+            for name, (config, args) in configs.items()]
 
 
 def fit_variant(run: Run, threads: int | None = None, log=print, launch: Launch = launch_process) -> Run:
@@ -152,7 +180,7 @@ def write_report(spec: dict, log=print) -> Path:
     if not runs:
         raise FileNotFoundError(f"{output}: no variant has run yet")
     curves = {r.model: read_scalars(r.fit_dir) for r in runs}
-    rows = [variant_row(r.model, spec["variants"][r.model], curves[r.model]) for r in runs]
+    rows = [variant_row(r.model, variant_change(spec, r.model), curves[r.model]) for r in runs]
     write_csv(output / "learning.csv", rows, COLUMNS)
     figures = [plot_curves(curves, output / f"curves_{x}.png", x) for x in ("steps", "seconds")]
     finished = [r.model for r in runs if (r.fit_dir / FINISHED).is_file()]

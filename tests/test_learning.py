@@ -115,6 +115,16 @@ def test_two_tiny_variants_end_to_end_and_resume(cli_data, tmp_path):
     assert (f"| decay | `--config {CONF_DIR / 'plate' / 'mgn.yaml'} --model.init_args.lr_schedule.decay_rate 0.5 "
             "--model.init_args.lr_schedule.decay_steps 2` | 4 |") in text
     assert rows[0]["rollout_mse_k1_last"] and not rows[1]["rollout_mse_k1_last"]  # MGN has no point clouds
+    # every validation, step by step: the CSV and the report's table
+    with open(output / "learning_validations.csv") as f:
+        validations = list(csv.DictReader(f))
+    assert [(v["variant"], v["step"]) for v in validations] == [("paper", "2"), ("paper", "4"), ("decay", "2"), ("decay", "4")]
+    assert all(float(v["rollout_mse_never"]) > 0 and 0 < float(v["train_seconds"]) < 300 for v in validations)
+    assert [bool(v["rollout_mse_k1"]) for v in validations] == [True, True, False, False]
+    assert float(validations[1]["rollout_mse_k1"]) == pytest.approx(float(rows[0]["rollout_mse_k1_last"]))
+    table = text.split("## At each validation")[1]
+    assert "| step | paper: rollout_mse_k1 |" in table and "decay: rollout_mse_never" in table
+    assert "decay: rollout_mse_k1" not in table and len([l for l in table.splitlines() if l.startswith(("| 2 |", "| 4 |"))]) == 2
     hparams = [read_checkpoint(r.fit_dir / "checkpoints" / "last.ckpt")["hyper_parameters"] for r in runs]
     assert [h["eval_schedules"] for h in hparams] == [["every:1", "every:2", "every:5", "every:10", "never"], ["never"]]
     # the LearningRateMonitor of the CLI logged the scheduled lr of each of the 4 steps

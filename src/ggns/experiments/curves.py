@@ -128,6 +128,35 @@ def _cell(value, fmt: str = ".3g") -> str:
     return format(value, fmt) if isinstance(value, float) else str(value)
 
 
+# the validation scalars listed step by step (`validation_rows`), in column order
+VALIDATIONS = ("val/rollout_mse_k1", "val/rollout_mse_never", "val/m10_mse", "val/one_step_ratio")
+VALIDATION_COLUMNS = ("variant", "step", "train_seconds", *(tag.removeprefix("val/") for tag in VALIDATIONS))
+
+
+def validation_rows(name: str, scalars: dict) -> list[dict]:
+    """One row per validation step of a fit (keys `VALIDATION_COLUMNS`): the `VALIDATIONS` it logged at
+    that step (None where not logged, e.g. k=1 for MGN) and its training seconds by then."""
+    logged = {tag: dict(zip(scalars[tag][0].tolist(), scalars[tag][2].tolist())) for tag in VALIDATIONS if tag in scalars}
+    steps = sorted({step for values in logged.values() for step in values})
+    seconds = training_seconds(scalars, np.array(steps, dtype=float))[0] if steps else []
+    return [{"variant": name, "step": int(step), "train_seconds": float(second),
+             **{tag.removeprefix("val/"): logged.get(tag, {}).get(step) for tag in VALIDATIONS}}
+            for step, second in zip(steps, seconds)]
+
+
+def validation_markdown(rows: list[dict]) -> str:
+    """The markdown table of `validation_rows` of one or more fits: one line per step, one column per fit
+    and scalar that some row has."""
+    names = list(dict.fromkeys(r["variant"] for r in rows))
+    keys = [k for k in VALIDATION_COLUMNS[3:] if any(r[k] is not None for r in rows)]
+    columns = [(n, k) for n in names for k in keys if any(r[k] is not None for r in rows if r["variant"] == n)]
+    by_step = {}
+    for r in rows:
+        by_step.setdefault(r["step"], {})[r["variant"]] = r
+    lines = [[str(step)] + [_cell(by_step[step].get(n, {}).get(k)) for n, k in columns] for step in sorted(by_step)]
+    return markdown_table(["step", *(f"{n}: {k}" for n, k in columns)], lines)
+
+
 def markdown_rows(rows: list[dict], threshold: float = RATIO_THRESHOLD, label: str = "variant",
                   change: bool = True) -> str:
     """The markdown table of `variant_row`s; the first column headed `label`, the `change` column

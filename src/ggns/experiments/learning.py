@@ -36,7 +36,8 @@ from omegaconf import OmegaConf
 
 from ..config import resolve_preset
 from ..reports import write_csv, write_json
-from .curves import CLOCK, COLUMNS, LATE_STEPS, RATIO_THRESHOLD, markdown_rows, plot_curves, read_scalars, variant_row
+from .curves import (CLOCK, COLUMNS, LATE_STEPS, RATIO_THRESHOLD, VALIDATION_COLUMNS, markdown_rows, plot_curves,
+                     read_scalars, validation_markdown, validation_rows, variant_row)
 from .sweep import Launch, Run, RunFailed, launch_process
 
 FINISHED = "learning_finished.json"
@@ -182,6 +183,8 @@ def write_report(spec: dict, log=print) -> Path:
     curves = {r.model: read_scalars(r.fit_dir) for r in runs}
     rows = [variant_row(r.model, variant_change(spec, r.model), curves[r.model]) for r in runs]
     write_csv(output / "learning.csv", rows, COLUMNS)
+    validations = [row for r in runs for row in validation_rows(r.model, curves[r.model])]
+    write_csv(output / "learning_validations.csv", validations, VALIDATION_COLUMNS)
     figures = [plot_curves(curves, output / f"curves_{x}.png", x) for x in ("steps", "seconds")]
     finished = [r.model for r in runs if (r.fit_dir / FINISHED).is_file()]
     clocked = [r.model for r in runs if CLOCK in curves[r.model]]
@@ -201,8 +204,11 @@ def write_report(spec: dict, log=print) -> Path:
              "validations in the second half of the steps (negative: still falling). m+10: `val/m10_mse`. Train loss: "
              f"the normalized training loss of graphs with / without a point cloud, mean of the values logged in "
              f"the last {LATE_STEPS} optimizer steps. n/a: not logged.", "",
-             markdown_rows(rows)] + [f"![{p.stem}]({p.name})" for p in figures]
+             markdown_rows(rows), ""] + [f"![{p.stem}]({p.name})" for p in figures] + [
+             "", "## At each validation", "",
+             "The validation scalars of every variant step by step (also in learning_validations.csv, with the "
+             "training seconds).", "", validation_markdown(validations) if validations else "(none yet)"]
     path = output / "learning.md"
     path.write_text("\n".join(lines) + "\n")
-    log(f"wrote {path}, {output / 'learning.csv'} and {', '.join(p.name for p in figures)}")
+    log(f"wrote {path}, {output / 'learning.csv'}, learning_validations.csv and {', '.join(p.name for p in figures)}")
     return path

@@ -148,8 +148,8 @@ def validation_markdown(rows: list[dict]) -> str:
     """The markdown table of `validation_rows` of one or more fits: one line per step, one column per fit
     and scalar that some row has."""
     names = list(dict.fromkeys(r["variant"] for r in rows))
-    keys = [k for k in VALIDATION_COLUMNS[3:] if any(r[k] is not None for r in rows)]
-    columns = [(n, k) for n in names for k in keys if any(r[k] is not None for r in rows if r["variant"] == n)]
+    columns = [(n, k) for n in names for k in VALIDATION_COLUMNS[3:]
+               if any(r[k] is not None for r in rows if r["variant"] == n)]
     by_step = {}
     for r in rows:
         by_step.setdefault(r["step"], {})[r["variant"]] = r

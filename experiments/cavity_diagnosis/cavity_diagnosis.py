@@ -10,6 +10,15 @@ mesh-point radius per free node, the RMS per-step motion of the free nodes (all,
 that move most) against the training noise and the points' spacing (median nearest-neighbour distance),
 and the true displacement from S_0 split along the true surface normal / tangential by the same groups.
 
+Motion along the surface from the shape (no model): how much of the true tangential motion the true
+shape determines if the wall does not stretch. Each step's motion across the surface (along the vertex
+normal at S_t) is taken as known, the motion along it (two tangent coordinates per free node) is the
+least-squares solution that keeps every tetrahedron edge's length (linearized at S_{t-1}; fixed nodes
+held), and the steps' solutions are summed from S_0: `shape_tangential`. Reported by material and group
+as the share of the true tangential displacement from S_0 (and of each step's) left unexplained (0: the
+shape and no stretch give it all, 1: no better than none, above 1: worse), beside how much the true
+motion stretches the edges (RMS edge-length change over RMS relative motion of the edge's ends).
+
 With a checkpoint, on the first n trajectories of the split:
 - rollouts from S_0 with a point cloud every step and without: the squared error per free node split by
   direction (along the true vertex normal / tangential) and group (seen at >= half the steps within the
@@ -38,6 +47,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import scipy.sparse as sparse
+import scipy.sparse.linalg as sparse_linalg
 from scipy.spatial import cKDTree
 
 from ggns.batch import TrajectoryBatch
@@ -46,7 +57,7 @@ from ggns.evaluation.evaluate import split_trajectories
 from ggns.evaluation.observability import SEEN_AT_LEAST, normal_tangential, vertex_normals
 from ggns.evaluation.rollout import rollout
 from ggns.evaluation.schedules import EveryK, Never, effective_schedule
-from ggns.geometry import boundary_facets
+from ggns.geometry import boundary_facets, cell_edges
 from ggns.models.training_noise import smooth_field
 from ggns.pretrained import load_model
 from ggns.reports import markdown_table, write_json, write_text
@@ -92,6 +103,86 @@ def per_step_groups(traj, near: float, finger: float) -> dict[str, np.ndarray]:
     return {g: m & free for g, m in groups.items()} | {"_hit": hit & free}
 
 
+def tangent_basis(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit tangents [N, 3] orthogonal to each other and to the unit `normals` [N, 3]."""
+    helper = np.where(np.abs(normals[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    first = np.cross(normals, helper)
+    first /= np.linalg.norm(first, axis=1, keepdims=True)
+    return first, np.cross(normals, first)
+
+
+def shape_tangential(before: np.ndarray, after: np.ndarray, edges: np.ndarray, facets: np.ndarray,
+                     fixed: np.ndarray, regularization: float = 1e-9) -> np.ndarray:
+    """The motion along the surface [N, 3] that the shape at `after` [N, 3] determines if the wall does
+    not stretch: with each free node's motion across the surface (along its vertex normal at `after`)
+    taken from the truth, its two tangent coordinates minimize the squared length change of `edges`
+    [E, 2] linearized at `before` (edge directions there), fixed nodes held (a tiny Tikhonov term picks
+    the least motion where the edges leave it open, e.g. a rotation about an axis of symmetry)."""
+    motion = after - before
+    normals = vertex_normals(after, facets)
+    tangents = tangent_basis(normals)
+    across = (motion * normals).sum(axis=1)
+    free = ~np.asarray(fixed, dtype=bool)
+    column = np.full(len(motion), -1, dtype=np.int64)
+    column[free] = np.arange(int(free.sum()))
+    i, j = edges[:, 0], edges[:, 1]
+    direction = before[j] - before[i]
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    normal_motion = across[:, None] * normals * free[:, None]
+    known = (direction * (normal_motion[j] - normal_motion[i])).sum(axis=1)  # each edge's stretch from it
+    rows, columns, values = [], [], []
+    for node, sign in ((j, 1.0), (i, -1.0)):
+        ok = free[node]
+        for k, tangent in enumerate(tangents):
+            rows.append(np.flatnonzero(ok))
+            columns.append(2 * column[node[ok]] + k)
+            values.append(sign * (direction[ok] * tangent[node[ok]]).sum(axis=1))
+    a = sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(columns))),
+                          shape=(len(edges), 2 * int(free.sum())))
+    coefficients = sparse_linalg.spsolve((a.T @ a + regularization * sparse.eye(a.shape[1])).tocsc(), -(a.T @ known))
+    along = np.zeros_like(motion)
+    along[free] = coefficients[0::2, None] * tangents[0][free] + coefficients[1::2, None] * tangents[1][free]
+    return along
+
+
+def tangential_part(vectors: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    return vectors - (vectors * normals).sum(axis=1, keepdims=True) * normals
+
+
+SHAPE_GROUPS = ("all", "near_finger", "far")
+
+
+def shape_report(trajs: list, groups: list[dict]) -> dict:
+    """`shape_tangential` over the trajectories (module docstring): {material or "all": {group: share of the
+    true tangential displacement left, "per_step_<group>": the same of each step's, "stretch_ratio"}}."""
+    sums: dict = {}
+    for traj, group in zip(trajs, groups):
+        x = traj.positions.astype(np.float64)
+        facets, edges = boundary_facets(traj.cells, traj.rest_positions), cell_edges(traj.cells)
+        total = np.zeros_like(x[0])
+        for key in ("all", f"{traj.poissons_ratio:g}"):
+            sums.setdefault(key, {g: np.zeros(4) for g in SHAPE_GROUPS} | {"stretch": np.zeros(2)})
+        for t in range(1, traj.num_steps):
+            step = shape_tangential(x[t - 1], x[t], edges, facets, traj.fixed)
+            total += step
+            normals = vertex_normals(x[t], facets)
+            true_step = tangential_part(x[t] - x[t - 1], normals)
+            true_total = tangential_part(x[t] - x[0], normals)
+            left_total = ((tangential_part(total, normals) - true_total) ** 2).sum(axis=1)
+            left_step = ((step - true_step) ** 2).sum(axis=1)
+            length = lambda y: np.linalg.norm(y[edges[:, 1]] - y[edges[:, 0]], axis=1)  # noqa: E731
+            relative = (x[t] - x[t - 1])[edges[:, 1]] - (x[t] - x[t - 1])[edges[:, 0]]
+            for key in ("all", f"{traj.poissons_ratio:g}"):
+                for g in SHAPE_GROUPS:
+                    mask = group[g][t]
+                    sums[key][g] += (left_total[mask].sum(), (true_total[mask] ** 2).sum(),
+                                     left_step[mask].sum(), (true_step[mask] ** 2).sum())
+                sums[key]["stretch"] += (((length(x[t]) - length(x[t - 1])) ** 2).sum(), (relative ** 2).sum())
+    return {key: {g: float(s[g][0] / s[g][1]) for g in SHAPE_GROUPS}
+            | {f"per_step_{g}": float(s[g][2] / s[g][3]) for g in SHAPE_GROUPS}
+            | {"stretch_ratio": float(np.sqrt(s["stretch"][0] / s["stretch"][1]))} for key, s in sums.items()}
+
+
 def data_report(dataset: str, data_dir: str | None, split: str, count: int, near: float | None,
                 finger: float, radius: float, noise: float) -> dict:
     data = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False)
@@ -101,9 +192,10 @@ def data_report(dataset: str, data_dir: str | None, split: str, count: int, near
         raise ValueError(f"{dataset}/{split} has no trajectories")
     points, cover, neighbours, spacing = [], {g: [] for g in GROUPS}, [], []
     motion = {"all": [], "near_finger": []}
-    top, displacement = [], []
+    top, displacement, all_groups = [], [], []
     for traj in trajs:
         groups = per_step_groups(traj, near, finger)
+        all_groups.append(groups)
         held = np.repeat(traj.positions[:1], traj.num_steps, axis=0)  # S_0 held: its error is the displacement
         displacement.append(split_error(held, traj.positions, boundary_facets(traj.cells, traj.rest_positions), groups,
                                         range(1, traj.num_steps)))
@@ -138,7 +230,8 @@ def data_report(dataset: str, data_dir: str | None, split: str, count: int, near
               "motion_rms_per_coordinate": {"all": rms(motion["all"]), "near_finger": rms(motion["near_finger"]),
                                             "top_10_percent": rms(top)},
               "displacement": {g: {k: float(np.mean([r[g][k] for r in displacement]))
-                                   for k in ("normal", "tangential", "total")} for g in GROUPS}}
+                                   for k in ("normal", "tangential", "total")} for g in GROUPS},
+              "shape_tangential_left": shape_report(trajs, all_groups)}
     return report
 
 
@@ -155,7 +248,7 @@ def split_error(pred: np.ndarray, true: np.ndarray, facets: np.ndarray, groups: 
 
 
 def model_report(checkpoint: str, dataset: str, data_dir: str | None, split: str, count: int, near: float | None,
-                 finger: float, sigma: float | None, wavelength: float, seed: int) -> dict:
+                 finger: float, sigma: float | None, wavelength: float, seed: int, one_step: bool = True) -> dict:
     model = load_model(checkpoint, map_location="cpu").eval()
     data = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False)
     near = float(data.config["sensor"]["voxel_size"]) if near is None else near
@@ -166,8 +259,10 @@ def model_report(checkpoint: str, dataset: str, data_dir: str | None, split: str
     groups = [per_step_groups(traj, near, finger) for traj in trajs]
     facets = [boundary_facets(traj.cells, traj.rest_positions) for traj in trajs]
     schedules = {"k1": effective_schedule(EveryK(1), model.uses_points), "never": Never()}
+    materials = sorted({tr.poissons_ratio for tr in trajs})
     out: dict = {"checkpoint": checkpoint, "model": type(model).__name__, "dataset": dataset, "split": split,
-                 "trajectories": len(trajs), "sigma": sigma, "rollout": {}, "by_material": {}, "over_time": {}}
+                 "trajectories": len(trajs), "sigma": sigma, "rollout": {}, "by_material": {}, "by_material_split": {},
+                 "over_time": {}}
     with torch.no_grad():
         for name, schedule in schedules.items():
             preds = [p[0].numpy().astype(np.float64) for p in
@@ -176,9 +271,11 @@ def model_report(checkpoint: str, dataset: str, data_dir: str | None, split: str
                    for p, tr, f, g in zip(preds, trajs, facets, groups)]
             out["rollout"][name] = {g: {k: float(np.mean([r[g][k] for r in per])) for k in ("normal", "tangential", "total")}
                                     for g in GROUPS}
-            materials = sorted({tr.poissons_ratio for tr in trajs})
             out["by_material"][name] = {f"{m:g}": float(np.mean([r["all"]["total"] for r, tr in zip(per, trajs)
                                                                    if tr.poissons_ratio == m])) for m in materials}
+            out["by_material_split"][name] = {f"{m:g}": {k: float(np.mean([r["all"][k] for r, tr in zip(per, trajs)
+                                                                            if tr.poissons_ratio == m]))
+                                                         for k in ("normal", "tangential")} for m in materials}
             curve = np.mean([((p - tr.positions)[:, ~tr.fixed] ** 2).mean(axis=(1, 2)) for p, tr in zip(preds, trajs)],
                             axis=0)
             out["over_time"][name] = [float(curve[t]) for t in range(0, len(curve), 10)] + [float(curve[-1])]
@@ -187,6 +284,11 @@ def model_report(checkpoint: str, dataset: str, data_dir: str | None, split: str
                   for tr, f, g in zip(trajs, facets, groups)]
         out["rollout"]["static"] = {g: {k: float(np.mean([r[g][k] for r in static])) for k in ("normal", "tangential", "total")}
                                     for g in GROUPS}
+        out["by_material_split"]["static"] = {f"{m:g}": {k: float(np.mean([r["all"][k] for r, tr in zip(static, trajs)
+                                                                         if tr.poissons_ratio == m]))
+                                                      for k in ("normal", "tangential")} for m in materials}
+        if not one_step:
+            return out
         # one step from the truth, and from the truth perturbed, with and without the point cloud
         torch.manual_seed(seed)
         steps = batch.num_steps - 1
@@ -245,6 +347,14 @@ def markdown(report: dict) -> str:
                   "to the true surface", "",
                   markdown_table(list(GROUPS), [[f"{data['displacement'][g]['normal']:.3g} / "
                                                  f"{data['displacement'][g]['tangential']:.3g}" for g in GROUPS]]), ""]
+        shape = data.get("shape_tangential_left")
+        if shape:
+            lines += ["motion along the surface from the shape if the wall does not stretch (`shape_tangential`): "
+                      "share of the true tangential displacement from S_0 left unexplained (each step's in brackets), "
+                      "and the true motion's RMS edge-length change over its edges' RMS relative motion", "",
+                      markdown_table(["material", *SHAPE_GROUPS, "stretch ratio"],
+                                     [[key] + [f"{r[g]:.3f} ({r['per_step_' + g]:.3f})" for g in SHAPE_GROUPS]
+                                      + [f"{r['stretch_ratio']:.3f}"] for key, r in shape.items()]), ""]
     model = report.get("model")
     if model:
         lines += [f"## Model: {model['model']} from {model['checkpoint']} ({model['split']}, {model['trajectories']} "
@@ -254,8 +364,17 @@ def markdown(report: dict) -> str:
         lines += [markdown_table(["schedule", *GROUPS], rows), ""]
         lines += ["By material (Poisson's ratio), all free nodes: " + "; ".join(
             f"{name}: " + ", ".join(f"nu={m} {v:.3g}" for m, v in r.items()) for name, r in model["by_material"].items()), ""]
+        split = model.get("by_material_split", {})
+        if split:
+            materials = list(next(iter(split.values())))
+            lines += ["By material, all free nodes, normal / tangential", "",
+                      markdown_table(["schedule", *(f"nu={m}" for m in materials)],
+                                     [[name] + [f"{r[m]['normal']:.3g} / {r[m]['tangential']:.3g}" for m in materials]
+                                      for name, r in split.items()]), ""]
         lines += ["Over time (every 10th state and the last): " + "; ".join(
             f"{name}: " + " ".join(f"{v:.2g}" for v in r) for name, r in model["over_time"].items()), ""]
+        if "one_step_mse" not in model:
+            return "\n".join(lines) + "\n"
         lines += ["One step from the true state: MSE " + ", ".join(f"{k} {v:.3g}" for k, v in model["one_step_mse"].items())
                   + "; ratio to no motion " + ", ".join(f"{k} {v:.2f}" for k, v in model["one_step_ratio"].items()), ""]
         lines += [f"One step from the true state + a perturbation of std {model['sigma']} per free node and coordinate "
@@ -285,6 +404,8 @@ def main() -> None:
     parser.add_argument("--field-wavelength", type=float, default=1.5,
                         help="the smooth perturbation's wavelength (rest-space units)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--rollouts-only", action="store_true",
+                        help="with --checkpoint: the rollouts and the static split only (no one-step or perturbation part)")
     parser.add_argument("--output", default=None)
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -295,7 +416,8 @@ def main() -> None:
                        for d in [args.dataset, *filter(None, args.cameras.split(","))]]}
     if args.checkpoint:
         report["model"] = model_report(args.checkpoint, args.dataset, args.data_dir, args.split, args.trajectories,
-                                       args.near, args.finger, args.sigma, args.field_wavelength, args.seed)
+                                       args.near, args.finger, args.sigma, args.field_wavelength, args.seed,
+                                       one_step=not args.rollouts_only)
     text = markdown(report)
     print(text)
     if args.output:

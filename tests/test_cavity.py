@@ -214,24 +214,59 @@ def test_fit_test_and_export_through_the_cli_on_tiny_cavity(tiny, tmp_path, mode
         assert len(list((tmp_path / "export" / "points").glob("*.vtu"))) == 6  # steps 0, 2, .., 10
 
 
+def diagnosis_script():
+    """experiments/cavity_diagnosis/cavity_diagnosis.py as a module (it is a script, not part of the package)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "cavity_diagnosis" / "cavity_diagnosis.py"
+    spec = importlib.util.spec_from_file_location("cavity_diagnosis", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    return script
+
+
+def test_shape_tangential_recovers_motion_that_keeps_edge_lengths_and_not_motion_that_stretches(tiny):
+    """The diagnosis's `shape_tangential` on the tiny cavity's mesh: given a small rotation's motion across
+    the surface, it returns the rotation's motion along it (a rotation keeps every edge's length); a random
+    motion along the surface stretches the edges, and what it returns leaves most of it unexplained; fixed
+    nodes stay put."""
+    from ggns.evaluation.observability import vertex_normals
+    from ggns.geometry import boundary_facets, cell_edges
+
+    script = diagnosis_script()
+    traj = tiny[1][0]
+    before = traj.rest_positions.astype(np.float64)
+    facets, edges = boundary_facets(traj.cells, before), cell_edges(traj.cells)
+    spin = np.array([2e-4, -1e-4, 0.0])  # about a horizontal axis through the mesh's centre
+    rotated = before + np.cross(spin, before - before.mean(axis=0))
+    free = np.zeros(len(before), dtype=bool)
+    along = script.shape_tangential(before, rotated, edges, facets, free)
+    normals = vertex_normals(rotated, facets)
+    true_along = script.tangential_part(rotated - before, normals)
+    assert ((along - true_along) ** 2).sum() < 1e-3 * (true_along ** 2).sum()
+    assert (true_along ** 2).sum() > 0.1 * ((rotated - before) ** 2).sum()  # the test has motion along to recover
+
+    rng = np.random.default_rng(0)
+    sliding = script.tangential_part(rng.normal(scale=1e-3, size=before.shape), vertex_normals(before, facets))
+    along = script.shape_tangential(before, before + sliding, edges, facets, traj.fixed)
+    true_along = script.tangential_part(sliding, vertex_normals(before + sliding, facets))
+    assert ((along - true_along)[~traj.fixed] ** 2).sum() > 0.5 * (true_along[~traj.fixed] ** 2).sum()
+    assert traj.fixed.any() and not along[traj.fixed].any()
+
+
 def test_the_cavity_diagnosis_script_splits_by_wall_and_reports_finite_numbers(tiny, tmp_path):
     """experiments/cavity_diagnosis/cavity_diagnosis.py (docs/experiments/cavity_diagnosis.md) on an untrained GGNS: the inner
     wall it finds from the geometry is the mesh's own numbering's (level j, wall k: ring 2 j + k, k = 0
     inner), predicting no motion costs the true motion's mean square, and every reported number is finite."""
-    import importlib.util
     import json
     import sys
-    from pathlib import Path
 
     from conftest import make, save_untrained
     from ggns.models.simulators import GGNS
 
-    ROOT = Path(__file__).resolve().parents[1]
-
     config, trajectories = tiny
-    spec = importlib.util.spec_from_file_location("cavity_diagnosis", ROOT / "experiments" / "cavity_diagnosis" / "cavity_diagnosis.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = diagnosis_script()
     rest = trajectories[0].rest_positions
     ring = len(rest) // (2 * len(np.unique(np.round(rest[:, 2], 6))))
     inner, outer = script.wall_sides(rest)
@@ -265,3 +300,5 @@ def test_the_cavity_diagnosis_script_splits_by_wall_and_reports_finite_numbers(t
     values = numbers(report["model"]) + numbers(report["data"])
     assert values and all(np.isfinite(values))
     assert 0 <= report["data"][0]["coverage"]["seen"] <= 1
+    assert set(report["data"][0]["shape_tangential_left"]) == {"all"} | {f"{t.poissons_ratio:g}" for t in val}
+    assert set(report["model"]["by_material_split"]["static"]) == set(report["model"]["by_material"]["k1"])

@@ -160,6 +160,7 @@ def shape_report(trajs: list, groups: list[dict]) -> dict:
         x = traj.positions.astype(np.float64)
         facets, edges = boundary_facets(traj.cells, traj.rest_positions), cell_edges(traj.cells)
         total = np.zeros_like(x[0])
+        lengths = np.linalg.norm(x[:, edges[:, 1]] - x[:, edges[:, 0]], axis=2)  # [T, E]
         for key in ("all", f"{traj.poissons_ratio:g}"):
             sums.setdefault(key, {g: np.zeros(4) for g in SHAPE_GROUPS} | {"stretch": np.zeros(2)})
         for t in range(1, traj.num_steps):
@@ -170,14 +171,13 @@ def shape_report(trajs: list, groups: list[dict]) -> dict:
             true_total = tangential_part(x[t] - x[0], normals)
             left_total = ((tangential_part(total, normals) - true_total) ** 2).sum(axis=1)
             left_step = ((step - true_step) ** 2).sum(axis=1)
-            length = lambda y: np.linalg.norm(y[edges[:, 1]] - y[edges[:, 0]], axis=1)  # noqa: E731
             relative = (x[t] - x[t - 1])[edges[:, 1]] - (x[t] - x[t - 1])[edges[:, 0]]
             for key in ("all", f"{traj.poissons_ratio:g}"):
                 for g in SHAPE_GROUPS:
                     mask = group[g][t]
                     sums[key][g] += (left_total[mask].sum(), (true_total[mask] ** 2).sum(),
                                      left_step[mask].sum(), (true_step[mask] ** 2).sum())
-                sums[key]["stretch"] += (((length(x[t]) - length(x[t - 1])) ** 2).sum(), (relative ** 2).sum())
+                sums[key]["stretch"] += (((lengths[t] - lengths[t - 1]) ** 2).sum(), (relative ** 2).sum())
     return {key: {g: float(s[g][0] / s[g][1]) for g in SHAPE_GROUPS}
             | {f"per_step_{g}": float(s[g][2] / s[g][3]) for g in SHAPE_GROUPS}
             | {"stretch_ratio": float(np.sqrt(s["stretch"][0] / s["stretch"][1]))} for key, s in sums.items()}

@@ -14,10 +14,11 @@ Motion along the surface from the shape (no model): how much of the true tangent
 shape determines if the wall does not stretch. Each step's motion across the surface (along the vertex
 normal at S_t) is taken as known, the motion along it (two tangent coordinates per free node) is the
 least-squares solution that keeps every tetrahedron edge's length (linearized at S_{t-1}; fixed nodes
-held), and the steps' solutions are summed from S_0: `shape_tangential`. Reported by material and group
-as the share of the true tangential displacement from S_0 (and of each step's) left unexplained (0: the
-shape and no stretch give it all, 1: no better than none, above 1: worse), beside how much the true
-motion stretches the edges (RMS edge-length change over RMS relative motion of the edge's ends).
+held), and the steps' solutions are summed from S_0: `shape_tangential`. Reported for --dataset (not
+again for the --cameras presets, which observe the same states) by material and group, as the share of
+the true tangential displacement from S_0 (and of each step's) left unexplained (0: the shape and no
+stretch give it all, 1: no better than none, above 1: worse), beside how much the true motion stretches
+the edges (RMS edge-length change over RMS relative motion of the edge's ends).
 
 With a checkpoint, on the first n trajectories of the split:
 - rollouts from S_0 with a point cloud every step and without: the squared error per free node split by
@@ -184,7 +185,7 @@ def shape_report(trajs: list, groups: list[dict]) -> dict:
 
 
 def data_report(dataset: str, data_dir: str | None, split: str, count: int, near: float | None,
-                finger: float, radius: float, noise: float) -> dict:
+                finger: float, radius: float, noise: float, shape: bool = True) -> dict:
     data = SimulationDataModule(dataset, data_dir=data_dir, generate_missing=False)
     near = float(data.config["sensor"]["voxel_size"]) if near is None else near
     trajs = data.trajectories(split)[:count]
@@ -230,8 +231,9 @@ def data_report(dataset: str, data_dir: str | None, split: str, count: int, near
               "motion_rms_per_coordinate": {"all": rms(motion["all"]), "near_finger": rms(motion["near_finger"]),
                                             "top_10_percent": rms(top)},
               "displacement": {g: {k: float(np.mean([r[g][k] for r in displacement]))
-                                   for k in ("normal", "tangential", "total")} for g in GROUPS},
-              "shape_tangential_left": shape_report(trajs, all_groups)}
+                                   for k in ("normal", "tangential", "total")} for g in GROUPS}}
+    if shape:  # the states' own property: once per set of states, not per camera preset
+        report["shape_tangential_left"] = shape_report(trajs, all_groups)
     return report
 
 
@@ -247,6 +249,12 @@ def split_error(pred: np.ndarray, true: np.ndarray, facets: np.ndarray, groups: 
                 "total": (s[0] + s[1]) / max(s[2], 1) / 3, "node_steps": int(s[2])} for g, s in sums.items()}
 
 
+def material_means(per: list[dict], trajs: list, parts: tuple[str, ...]) -> dict:
+    """{material: {part: mean over its trajectories of `split_error`'s "all" group}} (materials by Poisson's ratio)."""
+    return {f"{m:g}": {k: float(np.mean([r["all"][k] for r, tr in zip(per, trajs) if tr.poissons_ratio == m]))
+                       for k in parts} for m in sorted({tr.poissons_ratio for tr in trajs})}
+
+
 def model_report(checkpoint: str, dataset: str, data_dir: str | None, split: str, count: int, near: float | None,
                  finger: float, sigma: float | None, wavelength: float, seed: int, one_step: bool = True) -> dict:
     model = load_model(checkpoint, map_location="cpu").eval()
@@ -259,7 +267,6 @@ def model_report(checkpoint: str, dataset: str, data_dir: str | None, split: str
     groups = [per_step_groups(traj, near, finger) for traj in trajs]
     facets = [boundary_facets(traj.cells, traj.rest_positions) for traj in trajs]
     schedules = {"k1": effective_schedule(EveryK(1), model.uses_points), "never": Never()}
-    materials = sorted({tr.poissons_ratio for tr in trajs})
     out: dict = {"checkpoint": checkpoint, "model": type(model).__name__, "dataset": dataset, "split": split,
                  "trajectories": len(trajs), "sigma": sigma, "rollout": {}, "by_material": {}, "by_material_split": {},
                  "over_time": {}}
@@ -271,11 +278,9 @@ def model_report(checkpoint: str, dataset: str, data_dir: str | None, split: str
                    for p, tr, f, g in zip(preds, trajs, facets, groups)]
             out["rollout"][name] = {g: {k: float(np.mean([r[g][k] for r in per])) for k in ("normal", "tangential", "total")}
                                     for g in GROUPS}
-            out["by_material"][name] = {f"{m:g}": float(np.mean([r["all"]["total"] for r, tr in zip(per, trajs)
-                                                                   if tr.poissons_ratio == m])) for m in materials}
-            out["by_material_split"][name] = {f"{m:g}": {k: float(np.mean([r["all"][k] for r, tr in zip(per, trajs)
-                                                                            if tr.poissons_ratio == m]))
-                                                         for k in ("normal", "tangential")} for m in materials}
+            split = material_means(per, trajs, ("normal", "tangential", "total"))
+            out["by_material"][name] = {m: parts.pop("total") for m, parts in split.items()}
+            out["by_material_split"][name] = split
             curve = np.mean([((p - tr.positions)[:, ~tr.fixed] ** 2).mean(axis=(1, 2)) for p, tr in zip(preds, trajs)],
                             axis=0)
             out["over_time"][name] = [float(curve[t]) for t in range(0, len(curve), 10)] + [float(curve[-1])]
@@ -284,9 +289,7 @@ def model_report(checkpoint: str, dataset: str, data_dir: str | None, split: str
                   for tr, f, g in zip(trajs, facets, groups)]
         out["rollout"]["static"] = {g: {k: float(np.mean([r[g][k] for r in static])) for k in ("normal", "tangential", "total")}
                                     for g in GROUPS}
-        out["by_material_split"]["static"] = {f"{m:g}": {k: float(np.mean([r["all"][k] for r, tr in zip(static, trajs)
-                                                                         if tr.poissons_ratio == m]))
-                                                      for k in ("normal", "tangential")} for m in materials}
+        out["by_material_split"]["static"] = material_means(static, trajs, ("normal", "tangential"))
         if not one_step:
             return out
         # one step from the truth, and from the truth perturbed, with and without the point cloud
@@ -412,7 +415,7 @@ def main() -> None:
     commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     report = {"command": shlex.join(["python", "experiments/cavity_diagnosis/cavity_diagnosis.py", *sys.argv[1:]]), "commit": commit or "unknown",
               "data": [data_report(d, args.data_dir if d == args.dataset else None, args.split, args.trajectories,
-                                   args.near, args.finger, args.radius, args.noise)
+                                   args.near, args.finger, args.radius, args.noise, shape=d == args.dataset)
                        for d in [args.dataset, *filter(None, args.cameras.split(","))]]}
     if args.checkpoint:
         report["model"] = model_report(args.checkpoint, args.dataset, args.data_dir, args.split, args.trajectories,

@@ -172,6 +172,35 @@ def test_bad_learning_files(tmp_path):
         run_learning(load_learning(path), only=["b"])
 
 
+def test_a_learning_file_extends_another(tmp_path):
+    """`extends`: the parent's keys with the child's on top, the child's variants replacing the parent's;
+    command-line overrides still win; a file that extends itself through its parent is refused."""
+    config = str(CONF_DIR / "plate" / "mgn.yaml")
+    parent = {"output": "out", "minutes": 5, "val_every": 10, "seed": 0,
+              "base": {"config": config, "args": ["--a", "1"]}, "variants": {"x": [], "y": ["--b", "2"]}}
+    (tmp_path / "parent.yaml").write_text(yaml.safe_dump(parent))
+    (tmp_path / "child.yaml").write_text(yaml.safe_dump(
+        {"extends": str(tmp_path / "parent.yaml"), "seed": 1, "variants": {"z": ["--c", "3"]}}))
+    spec = load_learning(tmp_path / "child.yaml", ["minutes=7"])
+    assert "extends" not in spec and spec["seed"] == 1 and spec["minutes"] == 7 and spec["output"] == "out"
+    assert spec["variants"] == {"z": ["--c", "3"]} and spec["base"]["args"] == ["--a", "1"]
+    (tmp_path / "keep.yaml").write_text(yaml.safe_dump({"extends": str(tmp_path / "parent.yaml"), "seed": 2}))
+    assert load_learning(tmp_path / "keep.yaml")["variants"] == parent["variants"]  # none of its own: the parent's
+    (tmp_path / "parent.yaml").write_text(yaml.safe_dump({**parent, "extends": str(tmp_path / "child.yaml")}))
+    with pytest.raises(ValueError, match="round in a circle"):
+        load_learning(tmp_path / "child.yaml")
+
+
+def test_the_cavity_depth_companion_runs_the_parents_blocks_8(tmp_path):
+    """cavity_cpu_depth_mgn extends cavity_cpu_depth: its blocks_8 fit is the parent's, on seed 1."""
+    parent = {r.model: r for r in variant_runs(load_learning("cavity_cpu_depth", ["seed=1"]))}
+    child = {r.model: r for r in variant_runs(load_learning("cavity_cpu_depth_mgn"))}
+    assert sorted(child) == ["blocks_8", "mgn_blocks_8"] and child["blocks_8"].seed == 1
+    assert child["blocks_8"].fit_command() == parent["blocks_8"].fit_command()
+    assert child["mgn_blocks_8"].config == "conf/cavity/mgn.yaml" and child["mgn_blocks_8"].args[-2:] == (
+        "--model.init_args.blocks", "8")
+
+
 def test_the_shipped_learning_file_parses(tmp_path):
     """Every variant of conf/learning/plate_ggns.yaml builds through the Lightning CLI (nothing is trained)."""
     from ggns.cli import build_cli

@@ -13,6 +13,10 @@ A learning file (conf/learning/<name>.yaml, a checkout's experiments/<experiment
       noise_0.005: ["--model.init_args.noise.std", "0.005"]
       mgn: {config: conf/plate/mgn.yaml, args: []}  # or {config, args}: another model config
 
+A file may start from another with `extends: <learning file>`: the parent's keys, then the file's own on
+top, except `variants`, which the file replaces whole when it has them (so a companion run names only
+what differs: another seed, one more variant beside the parent's).
+
 A variant given as `{config, args}` fits its own config with the base's arguments and then its own, so
 different models (GGNS beside MGN) learn side by side within one budget.
 
@@ -55,10 +59,25 @@ def __getattr__(name: str):
 
 
 # ---- the variants ---------------------------------------------------------------------------------
+def learning_file(path: Path, seen: tuple[Path, ...] = ()):
+    """The file's contents on top of its `extends` chain (module docstring); a cycle is an error."""
+    if path.resolve() in seen:
+        raise ValueError(f"{path}: `extends` goes round in a circle ({' -> '.join(str(p) for p in seen)})")
+    own = OmegaConf.load(path)
+    parent = own.pop("extends", None)
+    if parent is None:
+        return own
+    merged = OmegaConf.merge(learning_file(resolve_preset(str(parent), "learning"), (*seen, path.resolve())),
+                             {k: v for k, v in own.items() if k != "variants"})
+    if "variants" in own:
+        merged.variants = own.variants
+    return merged
+
+
 def load_learning(name_or_path: str | Path, overrides: Sequence[str] = ()) -> dict:
     """The learning file (module docstring) with `key=value` overrides, checked."""
     path = resolve_preset(name_or_path, "learning")
-    spec = OmegaConf.to_container(OmegaConf.merge(OmegaConf.load(path), OmegaConf.from_dotlist(list(overrides))),
+    spec = OmegaConf.to_container(OmegaConf.merge(learning_file(path), OmegaConf.from_dotlist(list(overrides))),
                                   resolve=True)
     missing = [k for k in ("output", "minutes", "val_every", "base", "variants") if k not in spec]
     if missing:

@@ -3,13 +3,27 @@
 # scripts/setup.sh): Python 3.12 wheels of the pure-Python packages such a machine lacks, the
 # torch-cluster sources, the plate_tiny12 splits of tests/test_cuda.py, plate_small's test split (the
 # speed measurements' data), the baseline commit's sources (BASELINE, default e59b184: `bench ab` on the
-# GPU compares against it), and optionally checkpoints (stripped of optimizer states to travel light).
-#   bash scripts/gpu_kit.sh [KIT] [NAME=CHECKPOINT ...]
+# GPU compares against it), optionally checkpoints (stripped of optimizer states to travel light), and
+# the torch-cluster build of an earlier call (PREVIOUS: that call's gpu_check.tar.gz, its OUT folder or
+# the torch_cluster_site.tar.gz itself) as KIT/artefacts/torch_cluster_site.tar.gz, so that the next
+# call skips the build (about 130 s; gpu_check.sh builds anyway when it was made for another python,
+# torch, CUDA or GPU).
+#   [PREVIOUS=.../gpu_check.tar.gz] bash scripts/gpu_kit.sh [KIT] [NAME=CHECKPOINT ...]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 KIT=${1:-.gpu}; shift || true
 PY=.venv/bin/python
 mkdir -p "$KIT/whl" "$KIT/data" "$KIT/ckpt"
+PREVIOUS=${PREVIOUS:-}
+if [ -n "$PREVIOUS" ]; then
+  mkdir -p "$KIT/artefacts"
+  case $PREVIOUS in
+    */torch_cluster_site.tar.gz) cp "$PREVIOUS" "$KIT/artefacts/" ;;
+    *.tar.gz) tar -xzf "$PREVIOUS" -C "$KIT/artefacts" --strip-components=2 ./artefacts/torch_cluster_site.tar.gz ;;
+    *) cp "$PREVIOUS/artefacts/torch_cluster_site.tar.gz" "$KIT/artefacts/" ;;
+  esac
+  echo "torch-cluster build from $PREVIOUS: $KIT/artefacts/torch_cluster_site.tar.gz"
+fi
 PLATFORMS=()
 for tag in manylinux_2_35 manylinux_2_31 manylinux_2_28 manylinux_2_27 manylinux_2_24 manylinux_2_17 manylinux2014; do
   PLATFORMS+=(--platform "${tag}_x86_64")

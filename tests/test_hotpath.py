@@ -1,24 +1,27 @@
-"""The hot path (issue: fast where users train): checks that stay on the device until read and still name
-the step, node and quantity; no host reads in a training or rollout step but the neighbour search's own;
-static-shape graphs and the static step equal to the dynamic ones; the step profile on tiny data."""
+"""The hot path: checks that stay on the device until read and still name the step, node and quantity; a
+host-read counter that sees every kind of read; no host reads in an eager training or rollout step but the
+neighbour search's own; the step profile on tiny data (the static steps: tests/test_static_step.py)."""
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
+import operator
 
+import numpy as np
 import pytest
 import pytorch_lightning as pl
 import torch
+import torch_cluster
 
 from ggns.batch import TrajectoryBatch
-from ggns.bench.step_profile import HostReads, profile
+from ggns.bench.step_profile import READS, READS_BY_ARGUMENTS, HostReads, is_read, profile
 from ggns.checks import DeferredCheck, gpu_code_paths
 from ggns.data.module import SimulationDataModule, collate
-from ggns.evaluation.capture import StaticStep
 from ggns.evaluation.rollout import RolloutError, rollout
 from ggns.evaluation.schedules import EveryK, Never, parse_schedule
 from ggns.graphs.state import state_graph
-from ggns.graphs.static import StaticGraph, unmasked
+from ggns.graphs.types import MESH_EDGE
 from ggns.models.simulators import GGNS, GGNSLSTM, MGN, MGNM
 from ggns import phases
 
@@ -104,15 +107,166 @@ def _reads(run) -> dict:
     reads = HostReads()
     with phases.recording(), gpu_code_paths(), reads:
         run()
-    return {name: n for (_, _, name), n in reads.counts.items()}
+    counts = collections.Counter()
+    for (_, _, name), n in reads.counts.items():
+        counts[name] += n
+    return dict(counts)
+
+
+def _tensors() -> dict:
+    x = torch.randn(6, 3, generator=torch.Generator().manual_seed(0))
+    mask = torch.tensor([True, False, True, True, False, False])
+    return dict(x=x, mask=mask, values=torch.ones(3, 3), index=torch.tensor([0, 2, 2, 5]), scalar=torch.tensor(0.5),
+                zero_d=torch.tensor(2), repeats=torch.tensor([1, 0, 2, 1, 1, 0]),
+                batch=torch.zeros(6, dtype=torch.long), many=torch.arange(20))
+
+
+def _set_by_mask(t):
+    y = t["x"].clone()
+    y[t["mask"]] = t["values"]  # a device tensor of values: its rows are matched to the mask's count
+
+
+def _set_by_0d_index(t):
+    y = t["x"].clone()
+    y[t["zero_d"]] = 1.0
+
+
+def _fill_by_mask(t):
+    y = t["x"].clone()
+    y[t["mask"]] = 0.0  # one Python number through one mask: PyTorch's masked_fill_
+
+
+# (the name HostReads counts it under, a call that reads exactly once, its id)
+READ_KINDS = [
+    ("item", lambda t: t["scalar"].item(), "item"),
+    ("tolist", lambda t: t["x"].tolist(), "tolist"),
+    ("__bool__", lambda t: bool(t["mask"].any()), "bool of any"),
+    ("__int__", lambda t: int(t["index"].max()), "int of max"),
+    ("__float__", lambda t: float(t["scalar"]), "float"),
+    ("__complex__", lambda t: complex(t["scalar"]), "complex"),
+    ("__index__", lambda t: operator.index(t["zero_d"]), "index"),
+    ("is_nonzero", lambda t: torch.is_nonzero(t["scalar"]), "is_nonzero"),
+    ("equal", lambda t: torch.equal(t["x"], t["x"]), "torch.equal"),
+    ("equal", lambda t: t["x"].equal(t["x"]), "Tensor.equal"),
+    ("allclose", lambda t: torch.allclose(t["x"], t["x"]), "torch.allclose"),
+    ("allclose", lambda t: t["x"].allclose(t["x"]), "Tensor.allclose"),
+    ("__contains__", lambda t: 0.5 in t["x"], "in"),
+    ("__format__", lambda t: f"{t['scalar']:.3f}", "format"),
+    ("__repr__", lambda t: repr(t["x"]), "repr"),
+    ("__repr__", lambda t: str(t["x"]), "str"),
+    ("cpu", lambda t: t["x"].cpu(), "cpu"),
+    ("numpy", lambda t: t["x"].numpy(), "numpy"),
+    ("__array__", lambda t: np.asarray(t["x"]), "numpy asarray"),
+    ("nonzero", lambda t: torch.nonzero(t["mask"]), "torch.nonzero"),
+    ("nonzero", lambda t: t["mask"].nonzero(as_tuple=True), "Tensor.nonzero as tuple"),
+    ("argwhere", lambda t: torch.argwhere(t["mask"]), "argwhere"),
+    ("masked_select", lambda t: torch.masked_select(t["x"], t["mask"][:, None]), "torch.masked_select"),
+    ("masked_select", lambda t: t["x"].masked_select(t["mask"][:, None]), "Tensor.masked_select"),
+    ("unique", lambda t: torch.unique(t["index"]), "torch.unique"),
+    ("unique", lambda t: t["index"].unique(return_counts=True), "Tensor.unique"),
+    ("unique_consecutive", lambda t: torch.unique_consecutive(t["index"]), "unique_consecutive"),
+    ("bincount", lambda t: torch.bincount(t["index"], minlength=6), "bincount"),  # its size is max(index, 5) + 1
+    ("radius", lambda t: torch_cluster.radius(t["x"], t["x"], 1.0, t["batch"], t["batch"], batch_size=1), "radius"),
+    ("knn", lambda t: torch_cluster.knn(t["x"], t["x"], 2, t["batch"], t["batch"], batch_size=1), "knn"),
+    ("where", lambda t: torch.where(t["mask"]), "where of a condition"),
+    ("to", lambda t: t["x"].to("cpu"), "to cpu"),
+    ("to", lambda t: t["x"].to(device="cpu"), "to device=cpu"),
+    ("to", lambda t: t["x"].to(torch.device("cpu"), torch.float64), "to cpu and float64"),
+    ("__getitem__", lambda t: t["x"][t["mask"]], "getitem by a mask"),
+    ("__getitem__", lambda t: t["x"][t["mask"], 1:], "getitem by a mask and a slice"),
+    ("__getitem__", lambda t: t["x"][t["zero_d"]], "getitem by a 0-d index"),
+    ("__setitem__", _set_by_mask, "setitem by a mask"),
+    ("__setitem__", _set_by_0d_index, "setitem by a 0-d index"),
+    ("index_put_", lambda t: t["x"].clone().index_put_((t["mask"],), t["values"]), "index_put_ by a mask"),
+    ("index_put", lambda t: torch.index_put(t["x"], (t["mask"],), t["values"]), "index_put by a mask"),
+    ("repeat_interleave", lambda t: t["x"].repeat_interleave(t["repeats"], dim=0), "Tensor.repeat_interleave"),
+    ("repeat_interleave", lambda t: torch.repeat_interleave(t["repeats"]), "repeat_interleave of repeats"),
+    ("isin", lambda t: torch.isin(t["index"], t["many"]), "isin, sorting path"),  # 20 >= 10 x 4^0.145
+]
+NO_READS = [
+    (lambda t: torch.index_select(t["x"], 0, t["index"]), "index_select"),
+    (lambda t: t["x"][t["index"]], "getitem by an index tensor"),
+    (lambda t: t["x"][0, 1:], "getitem by numbers and slices"),
+    (lambda t: torch.zeros(6, 3).scatter_(0, t["index"][:, None].expand(-1, 3), t["x"][:4]), "scatter_"),
+    (lambda t: torch.zeros(6, 3).index_add_(0, t["index"], t["x"][:4]), "index_add_"),
+    (lambda t: torch.where(t["mask"][:, None], t["x"], 0.0), "torch.where(cond, a, b)"),
+    (lambda t: t["x"].where(t["mask"][:, None], 0.0), "Tensor.where(cond, b)"),
+    (lambda t: torch.topk(t["x"][:, 0], 2), "topk"),
+    (lambda t: torch.cumsum(t["mask"], 0), "cumsum"),
+    (lambda t: torch.sort(t["x"][:, 0]), "sort"),
+    (lambda t: t["x"].max(dim=0), "max(dim)"),
+    (lambda t: (t["x"].max(), t["x"].min()), "max() and min() to 0-d tensors"),
+    (lambda t: (t["mask"].any(), t["mask"].all()), "any and all"),
+    (lambda t: torch.arange(6), "arange"),
+    (lambda t: torch.searchsorted(t["index"], t["repeats"]), "searchsorted"),
+    (lambda t: torch.nonzero_static(t["mask"], size=6), "nonzero_static"),
+    (lambda t: t["x"].masked_fill(t["mask"][:, None], 0.0), "masked_fill"),
+    (_fill_by_mask, "setitem of a number by a mask"),
+    (lambda t: torch.gather(t["x"], 0, t["index"][:, None].expand(-1, 3)), "gather"),
+    (lambda t: torch.isclose(t["x"], t["x"]), "isclose"),
+    (lambda t: torch.isin(t["many"], t["index"]), "isin, brute-force path"),  # 4 < 10 x 20^0.145
+    (lambda t: t["x"].repeat_interleave(2, dim=0), "repeat_interleave by a number"),
+    (lambda t: torch.repeat_interleave(t["repeats"], output_size=5), "repeat_interleave with output_size"),
+    (lambda t: len(t["x"]), "len"),
+    (lambda t: (t["x"].to(torch.float64), t["x"].to(t["x"])), "to a dtype, to a tensor on the same device"),
+    (lambda t: torch.empty(6, 3).copy_(t["x"]), "copy_ on one device"),
+    (lambda t: phases.host_side(torch.tensor([1.5])).item(), "item of a host tensor"),
+]
+
+
+@pytest.mark.parametrize("name, run", [pytest.param(name, run, id=label) for name, run, label in READ_KINDS])
+def test_the_host_read_counter_sees_every_kind_of_read(name, run):
+    t = _tensors()
+    assert _reads(lambda: run(t)) == {name: 1}
+
+
+def test_every_kind_of_read_the_counter_knows_is_tested():
+    assert {name for name, _, _ in READ_KINDS} | {"copy_"} == READS | READS_BY_ARGUMENTS
+
+
+def test_the_host_read_counter_sees_copies_from_another_device():
+    """A copy to the host from another device (a meta tensor here) reads; one to another device does not."""
+    host, other = torch.zeros(3), torch.zeros(3, device="meta")
+    assert is_read(torch.Tensor.copy_, (host, other)) and not is_read(torch.Tensor.copy_, (other, host))
+    assert is_read(torch.Tensor.to, (other, host)) and not is_read(torch.Tensor.to, (host, other))
+    assert is_read(torch.Tensor.to, (other, "cpu")) and not is_read(torch.Tensor.to, (host, "meta"))
+
+
+@pytest.mark.parametrize("run", [pytest.param(run, id=label) for run, label in NO_READS])
+def test_static_shape_operations_are_no_host_reads(run):
+    t = _tensors()
+    assert _reads(lambda: run(t)) == {}
+
+
+def _radius_queries(connectivity, node_types) -> int:
+    """The radius queries of one graph build with these node types: one per edge family with a radius > 0
+    whose node types the graph has (a cross family, e.g. mesh-point, one query for both directions, as long
+    as it finds pairs; else the builder queries the reverse direction again)."""
+    return len({(tuple(sorted((src, dst))), relation) for (src, relation, dst), r in connectivity.radii().items()
+                if r > 0 and src in node_types and dst in node_types})
+
+
+def _graph_reads(model, graphs) -> dict:
+    """The reads of building `graphs`: the radius queries, and where world edges are queried on a graph with
+    mesh edges the filter of the mesh pairs (`drop_mesh_pairs`: its boolean mask and its `isin`, which sorts
+    and so reads when the mesh edges number at least 10 x (candidate pairs)^0.145, at most n^2 pairs)."""
+    reads = {"radius": sum(_radius_queries(model.connectivity, graph.node_types) for graph in graphs)}
+    filtered = [graph for graph in graphs if model.connectivity.world > 0 and MESH_EDGE in graph.edge_types]
+    for graph in filtered:
+        assert graph[MESH_EDGE].edge_index.size(1) >= 10 * (graph["mesh"].num_nodes ** 2) ** 0.145
+    if filtered:
+        reads.update(isin=len(filtered), __getitem__=len(filtered))
+    return reads
 
 
 @pytest.mark.parametrize("cls", [GGNS, MGNM])
 def test_training_and_rollout_steps_read_the_host_only_in_the_neighbour_search(cls, trajs, val_batch):
     """Every host read left in a training step (window loss, backward, Adam) and a rollout step is a radius
-    query (its edge count is data) or, for MGN's world edges, the filter of the mesh pairs."""
-    model = make(cls, statistics_batches=1)
-    batch = collate([trajs["train"][0].steps(2, 4), trajs["train"][1].steps(0, 2)])
+    query (its edge count is data) or, for MGN's world edges, the filter of the mesh pairs; a rollout reads
+    its two deferred checks (divergence, neighbour caps) once each at its end."""
+    points = dict(point_probability=1.0) if make(cls).uses_points else {}  # every training graph with its points
+    model = make(cls, statistics_batches=1, **points)
+    batch = collate([trajs["train"][0].steps(2, 4), trajs["train"][1].steps(0, 2)])  # one transition each
     model.fit_normalizers([batch])
     optimizer = torch.optim.Adam(model.parameters())
 
@@ -121,64 +275,17 @@ def test_training_and_rollout_steps_read_the_host_only_in_the_neighbour_search(c
         loss.backward()
         optimizer.step()
 
-    allowed = {"radius"} | ({"__getitem__"} if cls is MGNM else set())  # drop_mesh_pairs' boolean mask
-    assert set(_reads(train)) <= allowed
+    graphs = [graph for graph, _ in model.training_graphs(batch, train=False)]  # the node types of training's
+    assert len(graphs) == batch.num_steps - 1 == 1 and all("collider" in g.node_types for g in graphs)
+    expected = _graph_reads(model, graphs)
+    assert expected["radius"] > 0 and _reads(train) == expected
     model.eval()
     schedule = EveryK(1) if model.uses_points else Never()
+    graphs = [state_graph(val_batch, t, val_batch.positions[t], schedule.uses_points(t), model.connectivity,
+                          model.with_material) for t in range(val_batch.num_steps - 1)]
     reads = _reads(lambda: rollout(model.step, val_batch, schedule, model.connectivity, model.with_material,
                                    check_every=val_batch.num_steps))
-    assert set(reads) - allowed <= {"__bool__"} and reads.get("__bool__", 0) <= 2  # the one read at the end
-
-
-@pytest.mark.parametrize("cls", [GGNS, MGN, MGNM])
-def test_static_graphs_equal_the_dynamic_ones_after_masking(cls, val_batch):
-    model = make(cls).eval()
-    static = StaticGraph(*model.input_dims(model.connectivity, 2, model.with_material), "cpu", multiple=8)
-    caps = []
-    for t in range(val_batch.num_steps - 1):
-        for use_points in ((True, False) if model.uses_points else (False,)):
-            graph = state_graph(val_batch, t, val_batch.positions[t], use_points, model.connectivity,
-                                model.with_material)
-            padded, _ = static.fill(graph)
-            caps.append(static.capacities())
-            assert set(padded.edge_types) >= set(graph.edge_types) and set(padded.node_types) >= set(graph.node_types)
-            for edge_type in padded.edge_types:
-                kept = unmasked(padded[edge_type])
-                expected = graph[edge_type].edge_index if edge_type in graph.edge_types else kept[:, :0]
-                assert torch.equal(kept, expected), edge_type
-                n = expected.size(1)
-                if n:
-                    assert torch.equal(padded[edge_type].edge_attr[:n], graph[edge_type].edge_attr)
-            with torch.no_grad():
-                torch.testing.assert_close(model.step(padded)[0], model.step(graph)[0], rtol=1e-5, atol=1e-7)
-    assert all(c[t] >= 8 for c in caps for t in c)
-
-
-@pytest.mark.parametrize("cls", [GGNS, MGNM])
-def test_the_static_step_rolls_out_as_the_eager_one(cls, val_batch, trajs):
-    """The padded, buffered step (what a GPU captures) gives the eager rollouts and the same losses."""
-    model = make(cls).eval()
-    model.fit_normalizers([collate([trajs["train"][0].steps(0, 2)])])
-    step = StaticStep(model, capture=False)
-    for schedule in (["every:1", "every:3", "never"] if model.uses_points else ["never"]):
-        plan = parse_schedule(schedule)
-        eager, _ = rollout(model.step, val_batch, plan, model.connectivity, model.with_material)
-        static, _ = rollout(step, val_batch, plan, model.connectivity, model.with_material)
-        torch.testing.assert_close(static, eager, rtol=1e-5, atol=1e-6)
-    model.static_rollouts = True
-    assert isinstance(model.rollout_step(), StaticStep)
-    static_metrics = model.evaluate(val_batch, m_plus_10=False, iou=False)
-    model.static_rollouts = False
-    eager_metrics = model.evaluate(val_batch, m_plus_10=False, iou=False)
-    for key, value in eager_metrics.items():
-        torch.testing.assert_close(static_metrics[key], value, rtol=1e-4, atol=1e-9)
-
-
-def test_the_static_step_refuses_what_it_cannot_replay():
-    with pytest.raises(ValueError, match="GGNSLSTM.*static step"):
-        StaticStep(make(GGNSLSTM))
-    with pytest.raises(ValueError, match="capture needs the model on a CUDA device"):
-        StaticStep(make(GGNS), capture=True)
+    assert reads == {**_graph_reads(model, graphs), "__bool__": 2}
 
 
 def test_the_step_profile_runs_on_tiny_data(cli_data, tmp_path):
@@ -188,7 +295,9 @@ def test_the_step_profile_runs_on_tiny_data(cli_data, tmp_path):
         row = report[key]
         assert row["ms per step"] > 0 and row["operators per step"] > 0
         assert row["processor: operators"] > 0 and row["graph construction: ms"] > 0
-        assert set(name.rsplit(" | ", 1)[1] for name in row["host reads by site"]) <= {"radius", "__bool__"}
+        # the radius queries; a rollout also reads its two deferred checks at the end of each run of steps
+        names = {name.rsplit(" | ", 1)[1] for name in row["host reads by site"]}
+        assert names == ({"radius"} if key == "training" else {"radius", "__bool__"}), names
     assert "backward: ms" in report["training"] and report["lightning fit"]["fit steps/s"] > 0
     assert (tmp_path / "profile.json").is_file() and "### training step" in (tmp_path / "profile.md").read_text()
 

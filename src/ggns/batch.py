@@ -57,6 +57,8 @@ class TrajectoryBatch:
     # T x (B+1) host ints: the points of trajectory b at step t are points[t][o[b]:o[b+1]], o = point_offsets[t]
     # (None: not known on the host, e.g. a batch built by hand; then computed once from point_batch)
     point_offsets: tuple[tuple[int, ...], ...] | None = None
+    # B+1 host ints: trajectory b owns collider vertices o[b]:o[b+1] (None: not known on the host; computed once)
+    collider_offsets: tuple[int, ...] | None = None
     # the graph-input value checks passed for this batch (`graphs.state`; one sync per batch, not per step)
     inputs_checked: bool = field(default=False, compare=False)
 
@@ -102,6 +104,16 @@ class TrajectoryBatch:
             counts = torch.bincount(self.point_batch[t].cpu(), minlength=self.num_graphs).tolist()
             return tuple(int(v) for v in np.cumsum([0] + counts))
         return self.point_offsets[t]
+
+    @property
+    def collider_range(self) -> tuple[int, ...]:
+        """The B+1 host offsets of the trajectories' collider vertices (`collider_offsets`; all 0 without any)."""
+        if self.collider_offsets is None:
+            if self.collider_batch is None:
+                return (0,) * (self.num_graphs + 1)
+            counts = torch.bincount(self.collider_batch.cpu(), minlength=self.num_graphs).tolist()
+            self.collider_offsets = tuple(int(v) for v in np.cumsum([0] + counts))
+        return self.collider_offsets
 
     def to(self, device, non_blocking: bool = False) -> TrajectoryBatch:
         """A copy with every tensor on `device` (host offsets unchanged); non_blocking copies from pinned
@@ -185,6 +197,7 @@ class TrajectoryBatch:
             ground_truth=tuple(t.has_ground_truth for t in trajs),
             material_known=tuple(t.material_known for t in trajs),
             point_offsets=tuple(point_offsets),
+            collider_offsets=tuple(int(i) for i in np.cumsum([0] + k)),
         )
         batch.free_index  # noqa: B018 (computed once here; a move to a GPU carries it along)
         if batch.device.type == "cpu":  # the graph builder's value checks, here where they read no device

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .phases import phase
+
 _gpu_paths = False  # `gpu_code_paths`
 
 
@@ -85,6 +87,7 @@ class DeferredCheck:
         if self._failed is None:
             return None
         self.pending = False
-        if not bool(self._failed):
-            return None
-        return Failure(int(self._step), [d.tolist() for d in self._detail])
+        with phase("check reads"):
+            if not bool(self._failed):
+                return None
+            return Failure(int(self._step), [d.tolist() for d in self._detail])

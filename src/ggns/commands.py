@@ -557,7 +557,7 @@ def bench_profile(model: str = "ggns", dataset: str = "plate_small", latent: int
         fit_steps: also a Lightning fit of this many steps, against the bare loop (0: none)
         output_dir: write profile.json and profile.md here
         compile: compile the message-passing blocks (torch.compile, dynamic shapes)
-        static: roll out on static-shape graphs (CUDA-graph replays on a GPU)
+        static: the whole training and rollout steps on static shapes, no host read (CUDA-graph replays on a GPU)
     """
     from .bench.step_profile import profile
 

@@ -11,7 +11,9 @@ import weakref
 from torch import Tensor
 from torch.profiler import record_function
 
-PHASES = ("graph construction", "encoder", "processor", "decoder", "loss", "backward", "optimizer", "checks")
+# "check reads": the reads of the deferred checks at their intervals (`ggns.checks`), apart from the step
+PHASES = ("graph construction", "encoder", "processor", "decoder", "loss", "backward", "optimizer", "checks",
+          "check reads")
 _recording = False
 _open: list[str] = []  # the phases open now, innermost last (while recording)
 HOST_TENSORS: "weakref.WeakValueDictionary[int, Tensor]" = weakref.WeakValueDictionary()  # id -> tensor

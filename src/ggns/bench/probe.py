@@ -3,14 +3,15 @@ path in subprocesses with PYTHONPATH set to each source tree in turn (this check
 commit), so it imports nothing of its own tree and uses only the API both trees share (data module,
 models, `window_loss`, the rollout engine, a Lightning fit). Prints one JSON line.
 
-    python probe.py train  MODEL LATENT BLOCKS BATCH [ITERATIONS]     ms per optimizer iteration
+    python probe.py train  MODEL LATENT BLOCKS BATCH [ITERATIONS] [static]  ms per optimizer iteration
     python probe.py rollout MODEL LATENT BLOCKS TRAJECTORIES SCHEDULE [static]   ms per rollout step
     python probe.py fit    MODEL LATENT BLOCKS BATCH [STEPS]          Lightning fit steps/s
     python probe.py ops    train|rollout MODEL LATENT BLOCKS SIZE [SCHEDULE]  operators per step (torch.profiler)
     python probe.py import MODULE                                    ms to import MODULE in this fresh process
 
 `static`: roll out with the model's static step where its tree has one (`GraphSimulator.rollout_step`),
-else its plain step. The device is GGNS_PROBE_DEVICE (default cpu). Data: plate_small (generated
+else its plain step; train with its static training step where its tree has one
+(`GraphSimulator.static_train_step`), else its plain step. The device is GGNS_PROBE_DEVICE (default cpu). Data: plate_small (generated
 beforehand); weights random (speed does not depend on them), seeded.
 """
 from __future__ import annotations
@@ -53,20 +54,27 @@ def _batches(data, count: int) -> list:
     return [b.to(DEVICE) for b in batches]
 
 
-def train(model_name: str, latent: int, blocks: int, batch_size: int, iterations: int = 30) -> dict:
+def train(model_name: str, latent: int, blocks: int, batch_size: int, iterations: int | str = 30,
+          mode: str = "eager") -> dict:
+    if iterations == "static":  # train MODEL LATENT BLOCKS BATCH static
+        iterations, mode = 30, "static"
     torch, data, model = _setup(model_name, latent, blocks, batch_size)
     batches = _batches(data, iterations + 10)
     model.fit_normalizers(batches[:5])
     model.train()
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-4, fused=True)  # a captured step needs it
+    static = model.static_train_step() if mode == "static" and hasattr(model, "static_train_step") else None
     times = []
     for i, batch in enumerate(batches[5:]):
         _sync()
         start = time.perf_counter()
-        loss = model.window_loss(batch, train=True)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
+        if static is not None:
+            static.step(batch, optimizer)
+        else:
+            loss = model.window_loss(batch, train=True)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
         _sync()
         if i >= 5:
             times.append(time.perf_counter() - start)

@@ -9,11 +9,11 @@ For one model on one device, three passes over the same prepared inputs:
    (on a GPU the kernel launches themselves are counted); the share of operator time in matrix products
    (on the CPU of their self time, on a GPU of kernel time) and the matrix rate against the machine's
    GEMM rate (`bench.models.gemm_rate`);
-3. counted: the host reads per step (`HostReads`: every call that returns a device value to Python or
-   whose output shape depends on data, each a synchronization on a GPU; reads of host tensors marked by
-   `phases.host_side` are not counted), by phase and call site, with the hot path's GPU code paths taken
-   on the CPU too (`checks.gpu_code_paths`: on the CPU the checks read at once, where a read is free);
-   on a GPU also the synchronizations CUDA itself reports (`torch.cuda.set_sync_debug_mode`).
+3. counted: the host reads per step (`HostReads`: every call that returns a device value to Python, copies
+   it to the host or whose output shape depends on data, each a synchronization on a GPU; reads of host
+   tensors marked by `phases.host_side` are not counted), by phase and call site, with the hot path's GPU
+   code paths taken on the CPU too (`checks.gpu_code_paths`: on the CPU the checks read at once, where a
+   read is free); on a GPU also the synchronizations CUDA itself reports (`torch.cuda.set_sync_debug_mode`).
 Optionally (`fit_steps`) a Lightning fit of the same model, batch size and data, steps/s against the
 bare loop of pass 1 (`lightning efficiency`: the loop's time per step / the fit's).
 """
@@ -42,22 +42,125 @@ from .models import MATMUL_OPS, train_batches_on, gemm_rate
 from .timing import resolve_device, sync
 
 # Calls that read a device value back to the host, or whose output shape depends on the data (the
-# device must finish before the host knows it): each is a synchronization on a GPU.
-READS = {"item", "tolist", "__bool__", "__int__", "__float__", "__index__", "numpy", "nonzero", "argwhere",
-         "masked_select", "unique", "unique_consecutive", "bincount", "radius", "knn", "nonzero_static"}
+# device must finish before the host knows it): each is a synchronization on a GPU. By name: the mode sees
+# `torch.f(x)` and `x.f()` under the same name (`equal`, `nonzero`, `unique`, ...), a torch_cluster op too.
+READS = frozenset({
+    # a value to Python
+    "item", "tolist", "__bool__", "__int__", "__float__", "__complex__", "__index__", "is_nonzero", "equal",
+    "allclose", "__contains__", "__format__", "__repr__",
+    # a copy to the host: on a GPU a device-to-host copy; a CPU tensor here stands for a device one, as it does
+    # for every read above (host tensors marked by `phases.host_side` are exempt)
+    "cpu", "numpy", "__array__",
+    # an output size that is data
+    "nonzero", "argwhere", "masked_select", "unique", "unique_consecutive", "bincount",  # bincount: its max
+    # torch_cluster's neighbour searches (their edge counts are data)
+    "radius", "knn",
+})
+# Reads only with some arguments (`_reads_by_arguments`):
+# - `where` given the condition alone (= `nonzero`);
+# - `to` the CPU (as `cpu`; `to(other)` only where other is on the CPU and the tensor is not), `copy_` into a
+#   host tensor from a device one;
+# - `__getitem__` and `__setitem__` by a boolean mask (its output size is data) or by a 0-d integer tensor
+#   (read back as a Python int), `index_put(_)` by a boolean mask; but an assignment of one host value (a
+#   Python number) through one mask is a `masked_fill_` in PyTorch, no read;
+# - `repeat_interleave` by a tensor of repeats without `output_size` (the total is data);
+# - `isin` where PyTorch takes its sorting path without `assume_unique` (two `unique`s): when the test elements
+#   number at least 10 x (the elements)^0.145 (numpy's heuristic, which PyTorch copies).
+# Not reads: `nonzero_static` (its size is given), `isclose`, `any`, `all` and other reductions to a 0-d tensor
+# (until its `__bool__` or `item`), `__len__` (a shape).
+READS_BY_ARGUMENTS = frozenset({"where", "to", "copy_", "__getitem__", "__setitem__", "index_put_", "index_put",
+                                "repeat_interleave", "isin"})
 GEMM_KERNELS = ("gemm", "cutlass", "xmma", "cublas", "matmul")
 SOURCE = str(Path(__file__).resolve().parents[1])
 
 
+def _index_items(index) -> tuple:
+    return tuple(index) if isinstance(index, (tuple, list)) else (index,)
+
+
+def _is_mask(item) -> bool:
+    return isinstance(item, torch.Tensor) and item.dtype in (torch.bool, torch.uint8)
+
+
 def _is_reading_index(index) -> bool:
     """A boolean mask (its output size is data) or a 0-d integer tensor (read back as a Python int)."""
-    items = index if isinstance(index, tuple) else (index,)
-    return any(isinstance(i, torch.Tensor) and (i.dtype == torch.bool or (i.dim() == 0 and not i.is_floating_point()))
-               for i in items)
+    return any(_is_mask(i) or (isinstance(i, torch.Tensor) and i.dim() == 0 and not i.is_floating_point()
+                               and not i.is_complex()) for i in _index_items(index))
+
+
+def _is_masked_fill(target: torch.Tensor, index, value) -> bool:
+    """An assignment that PyTorch turns into `masked_fill_` (no read): one mask as the only tensor index and one
+    value from the host (a Python number, or a one-element tensor on the CPU while the target is not, or marked
+    by `phases.host_side`)."""
+    tensors = [i for i in _index_items(index) if isinstance(i, torch.Tensor)]
+    if len(tensors) != 1 or not _is_mask(tensors[0]):
+        return False
+    if isinstance(value, (bool, int, float)):
+        return True
+    return isinstance(value, torch.Tensor) and value.numel() == 1 and value.device.type == "cpu" and (
+        target.device.type != "cpu" or phases.is_host_side(value))
+
+
+def _target_device(args, kwargs) -> torch.device | None:
+    """The device of `Tensor.to(...)`'s arguments, None if it names none."""
+    if "device" in kwargs and kwargs["device"] is not None:
+        return torch.device(kwargs["device"])
+    for arg in args[1:]:
+        if isinstance(arg, (str, torch.device)):
+            return torch.device(arg)
+        if isinstance(arg, int) and not isinstance(arg, bool):
+            return torch.device("cuda", arg)
+    return None
+
+
+def _reads_by_arguments(name: str, args: tuple, kwargs: dict) -> bool:
+    """Whether a call of READS_BY_ARGUMENTS reads (the comment above it)."""
+    if name == "where":
+        return len(args) + len(kwargs) == 1
+    if name == "to":
+        if len(args) > 1 and isinstance(args[1], torch.Tensor):  # to(other): other's device and dtype
+            return args[1].device.type == "cpu" and args[0].device.type != "cpu"
+        device = _target_device(args, kwargs)
+        return device is not None and device.type == "cpu"
+    if name == "copy_":  # host.copy_(device tensor)
+        return len(args) > 1 and args[0].device.type == "cpu" and args[1].device.type != "cpu"
+    if name == "__getitem__":
+        return len(args) > 1 and _is_reading_index(args[1])
+    if name == "__setitem__":
+        return len(args) > 2 and _is_reading_index(args[1]) and not _is_masked_fill(args[0], args[1], args[2])
+    if name in ("index_put_", "index_put"):
+        indices = args[1] if len(args) > 1 else kwargs.get("indices", ())
+        values = args[2] if len(args) > 2 else kwargs.get("values")
+        accumulate = args[3] if len(args) > 3 else kwargs.get("accumulate", False)
+        return any(_is_mask(i) for i in indices) and (accumulate or not _is_masked_fill(args[0], indices, values))
+    if name == "repeat_interleave":
+        output_size = args[3] if len(args) > 3 else kwargs.get("output_size")
+        if output_size is not None:
+            return False
+        if len(args) == 1 and "repeats" not in kwargs:  # torch.repeat_interleave(repeats)
+            return isinstance(args[0], torch.Tensor)
+        repeats = args[1] if len(args) > 1 else kwargs.get("repeats")
+        return isinstance(repeats, torch.Tensor)
+    if name == "isin":
+        elements = args[0] if args else kwargs.get("elements")
+        test = args[1] if len(args) > 1 else kwargs.get("test_elements")
+        if not (isinstance(elements, torch.Tensor) and isinstance(test, torch.Tensor)) or kwargs.get("assume_unique") \
+                or elements.numel() == 0:
+            return False
+        return test.numel() >= int(10.0 * elements.numel() ** 0.145)
+    return False
+
+
+def is_read(func, args: tuple = (), kwargs: dict | None = None) -> bool:
+    """Whether a call of `func` reads the device (READS, READS_BY_ARGUMENTS), ignoring `phases.host_side`."""
+    name = getattr(func, "__name__", str(func))
+    return name in READS or (name in READS_BY_ARGUMENTS and _reads_by_arguments(name, args, kwargs or {}))
 
 
 class HostReads(TorchFunctionMode):
-    """Counts host reads (module docstring) by (phase, call site in ggns, function) while active."""
+    """Counts host reads (module docstring; READS, READS_BY_ARGUMENTS) by (phase, call site in ggns, function)
+    while active. The mode sees what the hot path calls, not what those calls call in turn (a read inside a
+    torch function called from Python is counted as that function's, once)."""
 
     def __init__(self):
         super().__init__()
@@ -65,14 +168,11 @@ class HostReads(TorchFunctionMode):
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
-        name = getattr(func, "__name__", str(func))
-        read = name in READS or (name in ("__getitem__", "__setitem__") and len(args) > 1 and _is_reading_index(args[1])) \
-            or (name == "repeat_interleave" and "output_size" not in kwargs and len(args) > 1
-                and isinstance(args[1], torch.Tensor))
-        if read and not (args and isinstance(args[0], torch.Tensor) and phases.is_host_side(args[0])):
+        if is_read(func, args, kwargs) and not (args and isinstance(args[0], torch.Tensor)
+                                                and phases.is_host_side(args[0])):
             site = _call_site()
             if site is not None:
-                self.counts[(phases.current(), site, name)] += 1
+                self.counts[(phases.current(), site, getattr(func, "__name__", str(func)))] += 1
         return func(*args, **kwargs)
 
 
@@ -88,7 +188,10 @@ def _call_site() -> str | None:
     return "outside ggns"
 
 
-def _optimizer_step(model, batch, optimizer) -> None:
+def _optimizer_step(model, batch, optimizer, static: bool = False) -> None:
+    if static:  # graphs, forward, backward and Adam in one static step (`models.static_training`)
+        model.static_train_step().step(batch, optimizer)
+        return
     loss = model.window_loss(batch, train=True)
     with phases.phase("backward"):
         optimizer.zero_grad(set_to_none=True)
@@ -133,7 +236,9 @@ def _measure(kind: str, run, steps: int, warmup: int, device: torch.device, per_
     row.update(_phase_table(prof, count, device))
     # matrix time (profiled pass) over the step's time (timed pass, no profiler)
     row["matrix share of step time"] = row.pop("matrix ms per step") / row["ms per step"]
-    row["host reads per step"] = sum(reads.counts.values()) / count
+    checks = sum(n for (p, _, _), n in reads.counts.items() if p == "check reads")
+    row["host reads per step"] = (sum(reads.counts.values()) - checks) / count
+    row["deferred-check reads per step"] = checks / count  # the checks read at their interval, not every step
     if device.type == "cuda":
         row["CUDA synchronizations per step"] = cuda_syncs / count
     row["host reads by site"] = {f"{p} | {site} | {name}": n / count for (p, site, name), n in
@@ -211,8 +316,9 @@ def profile(model: str = "ggns", dataset: str = "plate_small", latent: int = 128
             compile: bool = False, static: bool = False) -> dict:
     """The step profile (module docstring); returns {"training": row, "rollout": row, ...} and writes it
     as JSON and markdown to `output` (a folder) if given. compile: the processor's blocks compiled
-    (`models.speed.compile_processor`, timed after the warm-up compiled them); static: rollouts on
-    static-shape graphs (`GraphSimulator.static_rollouts`: CUDA-graph replays on a GPU)."""
+    (`models.speed.compile_processor`, timed after the warm-up compiled them); static: the whole training
+    step and rollout step on static shapes (`models.static_training.StaticTrainStep`,
+    `evaluation.capture.StaticStep`: one CUDA-graph replay each on a GPU, no host read)."""
     device = resolve_device(device)
     if model not in MODELS:
         raise ValueError(f"unknown model {model!r}; choose from {sorted(MODELS)}")
@@ -228,16 +334,17 @@ def profile(model: str = "ggns", dataset: str = "plate_small", latent: int = 128
     batches = train_batches_on(data, simulator.window, 2 + warmup + steps, device)
     simulator.fit_normalizers(batches[:2])
     simulator.train()
-    optimizer = torch.optim.Adam(simulator.parameters(), lr=1e-4)
+    optimizer = simulator.configure_optimizers()["optimizer"]  # the fused Adam a fit uses
     training = batches[2:]
     report = {"model": model, "dataset": dataset, "device": str(device), "latent": latent, "blocks": blocks,
-              "batch size": batch_size, "compiled processor": compile, "static rollouts": static, "machine": _machine(device), "GEMM GFLOP/s": gemm_rate(device)}
+              "batch size": batch_size, "compiled processor": compile, "static steps": static,
+              "machine": _machine(device), "GEMM GFLOP/s": gemm_rate(device)}
     print(f"bench profile: {model} training steps ...", flush=True)
     report["training"] = _measure("training", lambda i: _optimizer_step(simulator, training[i % len(training)],
-                                                                         optimizer), steps, warmup, device)
+                                                                         optimizer, static), steps, warmup, device)
     simulator.raise_if_checks_failed()
     report["training"]["matrix GFLOP per step"] = _matrix_flops(lambda: _optimizer_step(simulator, training[0],
-                                                                                         optimizer)) / 1e9
+                                                                                         optimizer, static)) / 1e9
     simulator.eval()
     tests = data.trajectories("test")
     trajectories = TrajectoryBatch.from_trajectories([tests[i % len(tests)] for i in range(rollout_trajectories)],
@@ -290,7 +397,7 @@ def _machine(device: torch.device) -> str:
 
 
 def profile_markdown(report: dict) -> str:
-    options = [name for name in ("compiled processor", "static rollouts") if report.get(name)]
+    options = [name for name in ("compiled processor", "static steps") if report.get(name)]
     head = (f"bench profile: {report['model']} (latent {report['latent']}, {report['blocks']} blocks) on "
             f"{report['dataset']}, batch {report['batch size']}, {report['device']} ({report['machine']}), "
             f"GEMM rate {report['GEMM GFLOP/s']:.0f} GFLOP/s" + (f"; {', '.join(options)}" if options else ""))

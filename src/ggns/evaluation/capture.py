@@ -1,70 +1,368 @@
-"""A model's rollout step on static-shape graphs, captured as a CUDA graph on a GPU (`StaticStep`).
+"""The whole rollout step with static shapes and no host read, captured as one CUDA graph on a GPU
+(`StaticStep`).
 
-An eager rollout step on a GPU launches every operator of the encoder, processor and decoder from
-Python, a few hundred launches whose host time exceeds the arithmetic of a single trajectory. Here the
-graph that the rollout engine built is copied into fixed-capacity buffers (`graphs.static.StaticGraph`),
-and the model's step on those buffers is recorded once as a CUDA graph and replayed at every later step
-(`torch.cuda.CUDAGraph`): a handful of copies and one launch. A graph that outgrows a capacity (more
-edges than ever before) grows the buffers and is recorded anew. The graph construction (the radius
-queries, whose edge counts are data) stays eager.
+An eager rollout step builds its graph with radius queries whose edge counts are data (each a read of
+the device), then launches every operator of the model from Python. A `StaticStep` instead runs the
+whole step on buffers of fixed capacity (`graphs.static`): the state graph (every radius query by the
+static search, the features), the model and its normalization, the integration (fixed nodes set to
+their known positions) and the rollout's checks (non-finite or escaped nodes, the neighbour cap, an
+edge capacity that was too small), recorded into device tensors. The batch's trajectories are copied
+once into the step's own buffers, the step number is a device scalar, and the predicted positions are
+written into an output buffer, so one step is `t.fill_(step)` and a replay: no host read, no allocation.
+On a GPU the step is recorded as a CUDA graph (`torch.cuda.CUDAGraph`, thread-local capture mode,
+autocast's weight cache off during the capture) and replayed; `compile=True` compiles it with
+`torch.compile(fullgraph=True, dynamic=False)` instead of (CPU) or before (GPU) the capture. On the CPU
+without either it runs eagerly: the same tensor program, which tests/test_static_step.py compares with
+the eager rollouts, compiles with `fullgraph=True` and counts no host read in.
 
-Where no GPU is used (`capture=False`, or a CPU model), the same buffers run eagerly: the padded step,
-which must give the model's own step (tests/test_static.py); on a GPU tests/test_cuda.py compares the
-replayed step with the eager one.
+The checks are read every `check_every` steps (`rollout.check_interval`) and at the end, with one read
+of a few numbers. An edge capacity that was too small (the static search found more pairs than the
+buffers hold) is not an error: the capacities grow to what was needed, the step is recorded anew, and
+the steps since the last read are computed again from the state saved there. A node over
+`max_num_neighbors` raises the neighbour check's ValueError, a diverged rollout the rollout's
+RolloutError, naming the first step, as the eager rollout does. `recordings` counts the recordings
+(captures, compilations, or eager preparations of a new layout).
 
-Models whose step carries state or reads more than the graph's features (GGNS+LSTM, GGNSID) are not
-supported: `StaticStep` refuses them and their rollouts stay eager.
+GGNSID (whose step fuses a material estimate between graphs) is refused; GGNS+LSTM's state lives in
+the step's buffers.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import Tensor
-from torch_geometric.data import HeteroData
 
-from ..graphs.static import StaticGraph
+from ..batch import TrajectoryBatch
+from ..phases import phase
+from ..graphs.build import NeighbourCheck
+from ..graphs.static import StaticLayout, measure_pairs, queried_types, static_graph
+from .rollout import ESCAPE_FACTOR, check_interval, raise_divergence
+from .schedules import Schedule
+
+
+RECOMPILE_LIMIT = 256  # compiled layouts of `StaticStep.step_function` in one process (`compile=True`)
+
+
+@dataclass
+class StepBuffers:
+    """The device buffers of a static step (every shape fixed by its `StaticLayout` and the batch's
+    steps T): the batch's trajectories, the step's state and its check records."""
+
+    positions: Tensor  # [T, N, d] true positions (the fixed nodes' source; teacher forcing)
+    rest: Tensor  # [N, d]
+    edges: Tensor  # [2, Em]
+    fixed: Tensor  # [N] bool
+    mesh_batch: Tensor  # [N]
+    collider: Tensor | None  # [T, K, d]
+    collider_batch: Tensor | None  # [K]
+    points: Tensor | None  # [T, P, d], padding rows zero
+    point_batch: Tensor | None  # [T, P], padding rows B
+    use: Tensor | None  # [T, B] bool: the schedule's point clouds per step and graph
+    material: Tensor | None  # [B]
+    t: Tensor  # 0-d long: the step to take (state t -> t + 1)
+    pos: Tensor  # [N, d] the current state (non-finite rows held at their last finite value)
+    out: Tensor  # [T, N, d] the raw predictions: out[t + 1] is the prediction of state t + 1
+    origin: Tensor  # [N, d] the start state (the escape check)
+    extent: Tensor  # 0-d: the start state's bounding-box diagonal
+    escape: Tensor  # 0-d bool: check escaped nodes (rollouts) or not (teacher forcing)
+    hidden: tuple[Tensor, Tensor] | None  # an LSTM's (h, c) [N, L]
+    diverged_at: Tensor  # 0-d long: the first step with a non-finite or escaped node, -1 if none
+    cap_at: Tensor  # 0-d long: the first step where a node had more than max_num_neighbors, -1 if none
+    cap_table: Tensor  # [types, 3] long: `NeighbourCheck`'s table at cap_at
+    overflow_at: Tensor  # 0-d long: the first step where an edge capacity was too small, -1 if none
+    needed: Tensor  # [types] long: the most pairs each queried edge type needed since the last read
+    capacity: Tensor  # [types] long: the layout's edge capacities
+
+
+def layout_for(model, batch: TrajectoryBatch, edges: dict | None = None) -> StaticLayout:
+    """The static layout of `batch` for `model` (host numbers only): node rows and the largest graph of
+    each node type from the batch's host offsets, edge capacities `edges` (or none yet)."""
+    B, nodes, spans = batch.num_graphs, {"mesh": batch.rest.size(0)}, {}
+    spans["mesh"] = max(b - a for a, b in zip(batch.node_offsets, batch.node_offsets[1:]))
+    if batch.collider is not None:
+        nodes["collider"] = batch.collider.size(1)
+        offsets = batch.collider_range
+        spans["collider"] = max(1, max(b - a for a, b in zip(offsets, offsets[1:])))
+    if model.uses_points:
+        clouds = [batch.point_range(t) for t in range(batch.num_steps)]
+        nodes["point"] = max(1, max(o[-1] for o in clouds))
+        spans["point"] = max(1, max(b - a for o in clouds for a, b in zip(o, o[1:])))
+    types = queried_types(model.connectivity, nodes)
+    return StaticLayout(B, nodes, spans, {t: (edges or {}).get(t, 0) for t in types})
 
 
 class StaticStep:
-    """`step(graph, state) -> (displacement [N_mesh, d], state)` of `model` on static-shape graphs, a CUDA
-    graph replay when `capture` (default: when the model is on a GPU). `recordings` counts captures."""
+    """The whole rollout step of `model` on static shapes (module docstring). capture: record a CUDA graph
+    (default: when the model is on a GPU); compile: `torch.compile(fullgraph=True, dynamic=False)` the step
+    (`compile_options`: more keyword arguments of torch.compile, e.g. a backend)."""
 
-    def __init__(self, model, capture: bool | None = None, margin: float = 1.25):
-        if model.recurrent or model.material_input:
-            raise ValueError(f"{type(model).__name__}: a static step needs a step without state that reads only the "
-                             f"graph's features (not GGNS+LSTM, not GGNSID)")
+    whole_step = True  # the rollout engine hands it whole rollouts (`evaluation.rollout.rollout`)
+
+    def __init__(self, model, capture: bool | None = None, compile: bool = False, margin: float = 1.25,
+                 compile_options: dict | None = None):
+        if model.material_input:
+            raise ValueError(f"{type(model).__name__}: a static step needs a step that reads only the graph and its "
+                             f"own state (not GGNSID)")
         device = next(model.parameters()).device
         self.capture = device.type == "cuda" if capture is None else capture
         if self.capture and device.type != "cuda":
             raise ValueError(f"capture needs the model on a CUDA device, it is on {device}")
-        node_dims, edge_dims = model.input_dims(model.connectivity, model.hparams.dim,
-                                                model.with_material or model.material_input)
-        self.model, self.buffers = model, StaticGraph(node_dims, edge_dims, device, margin=margin)
+        self.model, self.device, self.margin = model, device, margin
+        self.compile, self.compile_options = compile, dict(compile_options or {})
         self.recordings = 0
-        self._graph: torch.cuda.CUDAGraph | None = None
-        self._output: Tensor | None = None
+        self.layout: StaticLayout | None = None  # its edge capacities only grow
+        self.buffers: StepBuffers | None = None
+        self._batch: TrajectoryBatch | None = None
+        self._graph = None  # the CUDA graph, or the compiled function
+        self._key = None  # what the recording depends on besides the layout (`_recording_key`)
 
-    def __call__(self, graph: HeteroData, state: Any = None) -> tuple[Tensor, Any]:
-        static, fresh = self.buffers.fill(graph)
-        if not self.capture:
-            return self.model.step(static)[0], state
-        if fresh or self._graph is None:
-            self._record(static)
-        self._graph.replay()
-        return self._output, state
+    # ---- the step itself: tensor operations on the buffers, in place ------------------------------------
+    def step_function(self, b: StepBuffers) -> None:
+        """One step t -> t + 1 on the buffers (state, output and checks updated in place)."""
+        model, layout, connectivity = self.model, self.layout, self.model.connectivity
+        t = b.t.view(1)
+        at = (lambda series: series.index_select(0, t)[0])
+        has_collider, uses_points = b.collider is not None, b.points is not None
+        graph, checks = static_graph(
+            layout, connectivity, b.pos, b.rest, b.edges, b.fixed, b.mesh_batch,
+            at(b.collider) if has_collider else None, b.collider.index_select(0, t + 1)[0] if has_collider else None,
+            b.collider_batch, at(b.points) if uses_points else None, at(b.point_batch) if uses_points else None,
+            at(b.use) if uses_points else None, b.material)
+        if b.hidden is not None:
+            displacement, hidden = model.step(graph, b.hidden)
+            b.hidden[0].copy_(hidden[0])
+            b.hidden[1].copy_(hidden[1])
+        else:
+            displacement, _ = model.step(graph)
+        with phase("checks"):  # the integration and the rollout's checks
+            self._integrate(b, t, displacement, checks)
 
-    def _record(self, static: HeteroData) -> None:
-        """Warm up on a side stream (lazy initializations happen outside the capture), then capture."""
-        self._graph = None
-        side = torch.cuda.Stream()
-        side.wait_stream(torch.cuda.current_stream())
-        with torch.no_grad(), torch.cuda.stream(side):
-            for _ in range(2):
-                self.model.step(static)
-        torch.cuda.current_stream().wait_stream(side)
-        graph = torch.cuda.CUDAGraph()
-        with torch.no_grad(), torch.cuda.graph(graph):
-            self._output = self.model.step(static)[0]
-        self._graph = graph
+    def _integrate(self, b: StepBuffers, t: Tensor, displacement: Tensor, checks) -> None:
+        """Fixed nodes to their known positions, the prediction into the output, the checks recorded."""
+        connectivity, layout = self.model.connectivity, self.layout
+        truth = b.positions.index_select(0, t + 1)[0]
+        raw = torch.where(b.fixed[:, None], truth, b.pos + displacement)
+        finite = torch.isfinite(raw).all(dim=1)
+        escaped = ((raw - b.origin).norm(dim=1) > ESCAPE_FACTOR * b.extent).any() & b.escape
+        failed = ~finite.all() | escaped
+        b.out.index_copy_(0, t + 1, raw[None])
+        b.pos.copy_(torch.where(finite[:, None], raw, b.pos))
+        first = (lambda at_, now: torch.where((at_ < 0) & now, b.t, at_))
+        b.diverged_at.copy_(first(b.diverged_at, failed))
+        if checks.needed.numel():
+            over_cap = (checks.most[:, 0] > connectivity.max_num_neighbors).any()
+            b.cap_table.copy_(torch.where((b.cap_at < 0) & over_cap, checks.most, b.cap_table))
+            b.cap_at.copy_(first(b.cap_at, over_cap))
+            b.overflow_at.copy_(first(b.overflow_at, (checks.needed > b.capacity).any()))
+            b.needed.copy_(torch.maximum(b.needed, checks.needed))
+        b.t.add_(1)
+
+    # ---- preparation ----------------------------------------------------------------------------------
+    def _prepare(self, batch: TrajectoryBatch) -> None:
+        """The buffers for `batch` (its trajectories copied in); the layout from its host offsets, with edge
+        capacities measured on its true states (one read, per batch) and never shrunk."""
+        old = self.layout
+        layout = layout_for(self.model, batch, old.edges if old is not None else None)
+        measured = measure_pairs(batch, self.model.connectivity, layout)
+        layout = layout.grown(measured, self.margin)
+        same_shapes = (self.buffers is not None and old == layout
+                       and self.buffers.positions.shape == batch.positions.shape
+                       and self.buffers.edges.shape == batch.edges.shape)
+        if not same_shapes:
+            self.layout, self.buffers, self._graph = layout, self._allocate(batch, layout), None
+        self._fill(batch)
+        self._batch = batch
+
+    def _allocate(self, batch: TrajectoryBatch, layout: StaticLayout) -> StepBuffers:
+        T, N, d = batch.positions.shape
+        dtype, device = batch.positions.dtype, self.device
+        zeros = (lambda *shape, kind=dtype: torch.zeros(*shape, dtype=kind, device=device))
+        scalar = (lambda value: torch.full((), value, dtype=torch.long, device=device))
+        types = len(layout.edges)
+        collider = "collider" in layout.nodes
+        points = "point" in layout.nodes
+        latent = self.model.hparams.latent
+        return StepBuffers(
+            positions=zeros(T, N, d), rest=zeros(N, d), edges=zeros(2, batch.edges.size(1), kind=torch.long),
+            fixed=zeros(N, kind=torch.bool), mesh_batch=zeros(N, kind=torch.long),
+            collider=zeros(T, layout.nodes["collider"], d) if collider else None,
+            collider_batch=zeros(layout.nodes["collider"], kind=torch.long) if collider else None,
+            points=zeros(T, layout.nodes["point"], d) if points else None,
+            point_batch=zeros(T, layout.nodes["point"], kind=torch.long) if points else None,
+            use=zeros(T, layout.num_graphs, kind=torch.bool) if points else None,
+            material=zeros(layout.num_graphs) if self.model.with_material else None,
+            t=scalar(0), pos=zeros(N, d), out=zeros(T, N, d), origin=zeros(N, d), extent=zeros(()),
+            escape=torch.ones((), dtype=torch.bool, device=device),
+            hidden=(zeros(N, latent), zeros(N, latent)) if self.model.recurrent else None,
+            diverged_at=scalar(-1), cap_at=scalar(-1), cap_table=zeros(types, 3, kind=torch.long),
+            overflow_at=scalar(-1), needed=zeros(types, kind=torch.long),
+            capacity=torch.tensor(list(layout.edges.values()), dtype=torch.long, device=device))
+
+    def _fill(self, batch: TrajectoryBatch) -> None:
+        """Copy `batch` into the buffers (device copies; the point clouds padded with rows of graph B)."""
+        b, B = self.buffers, batch.num_graphs
+        b.positions.copy_(batch.positions)
+        b.rest.copy_(batch.rest)
+        b.edges.copy_(batch.edges)
+        b.fixed.copy_(batch.fixed)
+        b.mesh_batch.copy_(batch.mesh_batch)
+        if b.collider is not None:
+            b.collider.copy_(batch.collider)
+            b.collider_batch.copy_(batch.collider_batch)
+        if b.points is not None:
+            b.points.zero_()
+            b.point_batch.fill_(B)
+            for t in range(batch.num_steps):
+                n = batch.point_range(t)[-1]
+                b.points[t, :n].copy_(batch.points[t])
+                b.point_batch[t, :n].copy_(batch.point_batch[t])
+        if b.material is not None:
+            batch.require_material("this model")
+            b.material.copy_(batch.material)
+
+    # ---- recording --------------------------------------------------------------------------------------
+    def _recording_key(self) -> tuple:
+        """What a recorded step depends on besides its layout: the weights' dtype, autocast and the float32
+        matmul precision (a change of any is recorded anew)."""
+        dtype = next(self.model.parameters()).dtype
+        kind = self.device.type
+        autocast = torch.is_autocast_enabled(kind) and torch.get_autocast_dtype(kind)
+        return dtype, autocast, torch.get_float32_matmul_precision()
+
+    def _run(self) -> None:
+        """One step: eager, compiled or a replay, recording first where needed."""
+        key = self._recording_key()
+        if self._graph is None or key != self._key:
+            self._record(key)
+        if self.capture:
+            self._graph.replay()
+        elif self.compile:
+            # every layout is a program of its own: more than dynamo's default 8 compilations of this function
+            with torch._dynamo.config.patch(recompile_limit=RECOMPILE_LIMIT):
+                self._graph(self.buffers)
+        else:
+            self.step_function(self.buffers)
+
+    def _record(self, key) -> None:
+        self._key, b = key, self.buffers
         self.recordings += 1
+        if not self.capture:
+            self._graph = (torch.compile(self.step_function, fullgraph=True, dynamic=False, **self.compile_options)
+                           if self.compile else "eager")
+            return
+        saved = self._save()
+        function = (torch.compile(self.step_function, fullgraph=True, dynamic=False, **self.compile_options)
+                    if self.compile else self.step_function)
+        autocast = torch.is_autocast_enabled("cuda")
+        # autocast's cache of low-precision weight copies is freed when autocast exits: a capture must not
+        # read it (later replays would read freed memory), so the capture runs with the cache off
+        cast = torch.autocast("cuda", enabled=autocast, dtype=torch.get_autocast_dtype("cuda"), cache_enabled=False)
+        side = torch.cuda.Stream(self.device)
+        side.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.no_grad(), cast, torch.cuda.stream(side), \
+                torch._dynamo.config.patch(recompile_limit=RECOMPILE_LIMIT):
+            for _ in range(2):  # lazy initializations (and a compilation) happen outside the capture
+                function(b)
+                self._restore(saved)
+        torch.cuda.current_stream(self.device).wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.no_grad(), cast, torch.cuda.graph(graph, capture_error_mode="thread_local"):
+            function(b)
+        self._restore(saved)
+        self._graph = graph
+
+    def _save(self) -> dict:
+        """A copy of the step's state (position, hidden state, step, check records)."""
+        b = self.buffers
+        names = ("pos", "t", "diverged_at", "cap_at", "cap_table", "overflow_at", "needed")
+        saved = {name: getattr(b, name).clone() for name in names}
+        if b.hidden is not None:
+            saved["hidden"] = tuple(h.clone() for h in b.hidden)
+        return saved
+
+    def _restore(self, saved: dict) -> None:
+        b = self.buffers
+        for name, value in saved.items():
+            if name == "hidden":
+                b.hidden[0].copy_(value[0])
+                b.hidden[1].copy_(value[1])
+            else:
+                getattr(b, name).copy_(value)
+
+    # ---- rollouts ---------------------------------------------------------------------------------------
+    def rollout(self, batch: TrajectoryBatch, schedule: Schedule, start_positions: Tensor | None = None,
+                start: int = 0, steps: int | None = None, state: Any = None, check_every: int | None = None,
+                teacher_forcing: bool = False) -> tuple[Tensor, Any]:
+        """`evaluation.rollout.rollout` on the static step: predictions [steps + 1, N, d] of states start ..
+        start + steps, and the final state (an LSTM's (h, c), or None). teacher_forcing: every step starts
+        from the true state (`one_step_predictions`; no escape check)."""
+        last = batch.num_steps - 1
+        steps = last - start if steps is None else steps
+        if start < 0 or steps < 0 or start + steps > last:
+            raise ValueError(f"rollout start={start}, steps={steps} leaves the states 0..{last}")
+        if self._batch is not batch or self.buffers is None:
+            self._prepare(batch)
+        b = self.buffers
+        pos = batch.positions[start] if start_positions is None else start_positions.to(batch.positions)
+        b.pos.copy_(pos)
+        b.origin.copy_(pos)
+        b.extent.copy_((pos.amax(0) - pos.amin(0)).norm())
+        b.escape.fill_(not teacher_forcing)
+        b.out[start].copy_(pos)
+        if b.hidden is not None:
+            for buffer, value in zip(b.hidden, state if state is not None else (None, None)):
+                buffer.copy_(value) if value is not None else buffer.zero_()
+        if b.use is not None:
+            counts = [batch.point_range(t) for t in range(batch.num_steps)]
+            use = [[schedule.uses_points(t) and o[g + 1] > o[g] for g in range(batch.num_graphs)] for t, o in
+                   enumerate(counts)]
+            use = torch.tensor(use, dtype=torch.bool)
+            b.use.copy_(use.pin_memory() if b.use.is_cuda else use, non_blocking=True)
+        every = check_interval(self.device, check_every)
+        t = start
+        while t < start + steps:
+            saved, first = self._save_and_reset(t), t
+            with torch.no_grad():
+                while t < min(first + every, start + steps):
+                    if teacher_forcing:
+                        b.pos.copy_(b.positions[t])
+                    self._run()
+                    t += 1
+            if self._read(batch, first, t):  # a capacity grew: these steps again, from the saved state
+                self._restore(saved)
+                t = first
+        final = tuple(h.clone() for h in b.hidden) if b.hidden is not None else None
+        return b.out[start:start + steps + 1].clone(), final
+
+    def _save_and_reset(self, t: int) -> dict:
+        b = self.buffers
+        b.t.fill_(t)
+        for name in ("diverged_at", "cap_at", "overflow_at"):
+            getattr(b, name).fill_(-1)
+        b.needed.zero_()
+        return self._save()
+
+    def _read(self, batch: TrajectoryBatch, first: int, end: int) -> bool:
+        """Read the checks of steps first .. end - 1 (one read): raise the first failure; True when an edge
+        capacity was too small (the layout has grown: the steps must be taken again)."""
+        b = self.buffers
+        with phase("check reads"):
+            values = torch.cat([torch.stack([b.diverged_at, b.cap_at, b.overflow_at]), b.needed]).tolist()
+        (diverged, capped, overflow), needed = values[:3], dict(zip(self.layout.edges, values[3:]))
+        failures = [s for s in (diverged, capped) if s >= 0]
+        if overflow >= 0 and not (failures and min(failures) < overflow):
+            self.layout = self.layout.grown(needed, self.margin)
+            b.capacity.copy_(torch.tensor(list(self.layout.edges.values()), dtype=torch.long))
+            self._graph = None
+            return True
+        if diverged >= 0 and (capped < 0 or diverged <= capped):
+            raise_divergence(b.out[diverged + 1], b.origin, float(b.extent), batch, diverged)
+        if capped >= 0:
+            check = NeighbourCheck(self.model.connectivity, what="rollout")
+            check.step = capped
+            table = dict(zip(self.layout.edges, b.cap_table))
+            check.record(table)
+            check.raise_if_failed()
+        return False

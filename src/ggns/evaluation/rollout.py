@@ -79,8 +79,7 @@ class DivergenceCheck:
         if failure is not None:
             self.diverged.reset()
             t = failure.step
-            _check_finite(predictions[t], self.batch, t)
-            _check_bounded(predictions[t], self.origin, float(self.extent), self.batch, t)
+            raise_divergence(predictions[t], self.origin, float(self.extent), self.batch, t)
         self.neighbours.raise_if_failed()
 
 
@@ -93,6 +92,8 @@ def rollout(step_fn: StepFn, batch: TrajectoryBatch, schedule: Schedule, connect
     Raises RolloutError naming the step and trajectories that went non-finite, or the first node
     that escaped (farther than ESCAPE_FACTOR x the start state's extent from its start); the checks
     are read every `check_every` steps and at the end (module docstring)."""
+    if getattr(step_fn, "whole_step", False):  # a `capture.StaticStep`: graph, model and checks in one step
+        return step_fn.rollout(batch, schedule, start_positions, start, steps, state, check_every)
     last = batch.num_steps - 1
     steps = last - start if steps is None else steps
     if start < 0 or steps < 0 or start + steps > last:
@@ -122,6 +123,8 @@ def one_step_predictions(step_fn: StepFn, batch: TrajectoryBatch, schedule: Sche
     Returns [T, sumN, d]: index 0 is the true S_0, index t the prediction of S_t (non-finite ones raise
     RolloutError naming the first such step, read once at the end)."""
     batch.require_ground_truth("teacher-forced prediction")
+    if getattr(step_fn, "whole_step", False):
+        return step_fn.rollout(batch, schedule, teacher_forcing=True, check_every=batch.num_steps)[0]
     fixed = batch.fixed[:, None]
     out, state = [batch.positions[0]], None
     check = DivergenceCheck(batch, batch.positions[0], connectivity, escape=False)
@@ -147,6 +150,14 @@ def m_plus_10_rollouts(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Co
     if starts and (starts[0] < 0 or starts[-1] + horizon > batch.num_steps - 1):
         raise ValueError(f"m+{horizon} starts {starts} need 0 <= m <= {batch.num_steps - 1 - horizon}")
     preds, chain, state = {}, [batch.positions[0]], None
+    if starts and getattr(step_fn, "whole_step", False) and not getattr(step_fn.model, "recurrent", True):
+        # a stateless static step: the chain as one rollout, its checks read as in any rollout
+        chain = list(rollout(step_fn, batch, EveryK(1), connectivity, with_material, steps=starts[-1])[0])
+        for m in starts:
+            blind, _ = rollout(step_fn, batch, Never(), connectivity, with_material, chain[m], m, horizon,
+                               check_every=horizon)
+            preds[m] = torch.cat([torch.stack(chain[:m + 1]), blind[1:]])
+        return preds
     for m in range(starts[-1] + 1 if starts else 0):
         if m in starts:
             blind, _ = rollout(step_fn, batch, Never(), connectivity, with_material, chain[m], m, horizon,
@@ -162,6 +173,13 @@ def m_plus_10_rollouts(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Co
 # scene (they are normalized to [-1, 1]^d): the rollout is reported as diverged rather than continued
 # as garbage (checked in `rollout`, which runs long horizons; not in the one-step predictions).
 ESCAPE_FACTOR = 100.0
+
+
+def raise_divergence(prediction: Tensor, origin: Tensor, extent: float, batch: TrajectoryBatch, t: int) -> None:
+    """Raise the RolloutError of a rollout whose prediction of state t + 1 (`prediction` [sumN, d]) is not
+    finite or has a node farther than ESCAPE_FACTOR x `extent` from its start in `origin`; nothing if neither."""
+    _check_finite(prediction, batch, t)
+    _check_bounded(prediction, origin, extent, batch, t)
 
 
 def _check_bounded(pos: Tensor, start: Tensor, extent: float, batch: TrajectoryBatch, t: int) -> None:

@@ -24,13 +24,13 @@ Conventions (see `ggns.graphs.types` for the vocabulary):
 from __future__ import annotations
 
 import torch
-import torch_cluster
 from torch import Tensor
 from torch_geometric.data import HeteroData
 
 from ..batch import check_batch_vectors
 from ..checks import DeferredCheck, reads_cost
 from ..phases import phase
+from . import search
 from .connectivity import Connectivity
 from .types import MESH_EDGE, WORLD_EDGE
 
@@ -83,7 +83,8 @@ def build_graph(
         for edge_type, radius in connectivity.radii().items():
             if radius > 0 and edge_type[0] in data.node_types and edge_type[2] in data.node_types \
                     and edge_type not in data.edge_types:
-                most[edge_type] = add_radius_edges(data, edge_type, radius, connectivity.max_num_neighbors)
+                most[edge_type] = add_radius_edges(data, edge_type, radius, connectivity.max_num_neighbors,
+                                                   connectivity.search)
     with phase("checks"):
         checker = neighbours if neighbours is not None else NeighbourCheck(connectivity)
         checker.record(most)
@@ -193,13 +194,14 @@ def neighbour_counts(index: Tensor, size: int) -> Tensor:
     return torch.zeros(size, dtype=torch.long, device=index.device).index_add_(0, index, torch.ones_like(index))
 
 
-def add_radius_edges(data: HeteroData, edge_type: tuple[str, str, str], radius: float, max_num_neighbors: int) -> Tensor:
+def add_radius_edges(data: HeteroData, edge_type: tuple[str, str, str], radius: float, max_num_neighbors: int,
+                     neighbour_search: str = "auto") -> Tensor:
     """Adds the radius edges of `edge_type` (src, relation, dst) within each graph, with their
     features: for src == dst the symmetric pairs without self loops (WORLD_EDGE without the mesh
     edges already in `data`), else the pairs and their flipped copy as (dst, relation, src). Returns
     long [3]: the largest neighbour count of a node in the query (more than `max_num_neighbors` means
     edges were dropped: `NeighbourCheck` raises), the side of that node (0: dst, 1: src) and its index,
-    without syncing the device."""
+    without syncing the device. neighbour_search: `graphs.search.radius`'s choice of search."""
     src, _, dst = edge_type
     pos = {t: data[t].pos for t in (src, dst)}
     batch = {t: data[t].batch for t in (src, dst)}
@@ -208,16 +210,16 @@ def add_radius_edges(data: HeteroData, edge_type: tuple[str, str, str], radius: 
         n = pos[src].size(0)
         # torch_cluster.radius_graph with its self-loop filter done here without a sync: each node finds itself
         # (so a query returns up to cap + 1 pairs, and its neighbours are one fewer)
-        index = torch_cluster.radius(pos[src], pos[src], radius, batch[src], batch[src], max_num_neighbors=cap + 1,
-                                     batch_size=data.num_graphs).flip(0)
+        index = search.radius(pos[src], pos[src], radius, batch[src], batch[src], cap + 1, data.num_graphs,
+                              neighbour_search).flip(0)
         counts = [neighbour_counts(index[1], n) - 1]
         index = drop_self_loops(index, n)
         if edge_type == WORLD_EDGE and MESH_EDGE in data.edge_types:
             index = drop_mesh_pairs(index, data[MESH_EDGE].edge_index, pos[src].size(0))
         edge_sets = {edge_type: index}
     else:  # one query (row 0 indexes dst, row 1 src), flipped for the reverse type
-        pairs = torch_cluster.radius(pos[src], pos[dst], radius, batch[src], batch[dst], max_num_neighbors=cap,
-                                     batch_size=data.num_graphs)
+        pairs = search.radius(pos[src], pos[dst], radius, batch[src], batch[dst], cap, data.num_graphs,
+                              neighbour_search)
         counts = [neighbour_counts(pairs[0], pos[dst].size(0)), neighbour_counts(pairs[1], pos[src].size(0))]
         edge_sets = {edge_type: pairs.flip(0), (dst, edge_type[1], src): pairs}
     features = None

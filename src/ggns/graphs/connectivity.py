@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..config import load_config
+from .search import SEARCHES
 from .types import EDGE_TYPES, MESH_EDGE, WORLD_EDGE
 
 _RADII = ("point_point", "mesh_point", "collider_point", "collider_mesh", "collider_collider", "world")
@@ -22,6 +23,9 @@ class Connectivity:
 
     max_num_neighbors: the most neighbours one node may find in one radius query; the graph
     builder raises (never drops edges) when any node has more.
+    search: the eager graph builder's neighbour search (`graphs.search`): "auto" (torch-cluster on the
+    CPU when it is installed, else the static search), "cluster" or "static". The static steps
+    (`StaticStep`, `StaticTrainStep`) always use the static search. Optional in a preset.
     """
 
     point_point: float
@@ -31,6 +35,7 @@ class Connectivity:
     collider_collider: float
     world: float  # MGN world edges: mesh pairs within this radius that are not mesh edges
     max_num_neighbors: int
+    search: str = "auto"
 
     def __post_init__(self):
         for name in _RADII:
@@ -41,12 +46,14 @@ class Connectivity:
         cap = self.max_num_neighbors
         if isinstance(cap, bool) or not isinstance(cap, int) or cap < 1:
             raise ValueError(f"connectivity max_num_neighbors must be an integer >= 1, got {cap!r}")
+        if self.search not in SEARCHES:
+            raise ValueError(f"connectivity search must be one of {SEARCHES}, got {self.search!r}")
 
     @classmethod
     def from_dict(cls, values: dict) -> Connectivity:
-        """From a mapping holding exactly the dataclass fields."""
+        """From a mapping holding the dataclass fields (`search` may be left out: "auto")."""
         fields = {f.name for f in dataclasses.fields(cls)}
-        unknown, missing = sorted(set(values) - fields), sorted(fields - set(values))
+        unknown, missing = sorted(set(values) - fields), sorted(fields - set(values) - {"search"})
         if unknown or missing:
             raise ValueError(f"connectivity settings: unknown keys {unknown}, missing keys {missing} (expected {sorted(fields)})")
         return cls(**values)

@@ -31,13 +31,13 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sparse
 import torch
-import torch_cluster
 from scipy.sparse.csgraph import shortest_path
 
 from ..batch import TrajectoryBatch
 from ..config import load_config
 from ..reports import markdown_table
 from ..trajectory import Trajectory
+from . import search
 from .connectivity import Connectivity, load_connectivity
 from .state import state_graph
 from .types import MESH_EDGE, WORLD_EDGE
@@ -90,7 +90,7 @@ def measure(trajectories: list[Trajectory], graph: Connectivity, baseline_graph:
             points = batch.points[t]
             counts.append(len(points))
             if len(points) > 1:
-                pair = torch_cluster.knn(points, points, 2)  # self and the nearest other point
+                pair = search.knn(points, points, 2)  # self and the nearest other point
                 other = pair[:, pair[0] != pair[1]]
                 spacing.append((points[other[0]] - points[other[1]]).norm(dim=1).median().item())
             g = state_graph(batch, t, batch.positions[t], True, graph)

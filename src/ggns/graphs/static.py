@@ -1,105 +1,228 @@
-"""Static-shape graphs: a built graph copied into buffers whose shapes stay the same from step to step.
+"""Graph building with static shapes: the model input of a state built by tensor operations on buffers of
+fixed capacity, with no host read, so that a whole step (graph, model, integration, checks) can be
+captured as one CUDA graph or compiled with `torch.compile(fullgraph=True, dynamic=False)`.
 
-A radius graph's edge counts change with every state, and a point cloud's size with every step, so the
-tensors of consecutive graphs have different shapes, which a captured CUDA graph (or a compiled step
-with static shapes) cannot take. `StaticGraph` holds, for every node and edge type a model accepts,
-buffers of a fixed capacity: a graph is copied into their first rows and the rest is padding that
-changes nothing: padded edges carry `edge_mask` False (the core sends their messages to a sink row and
-counts them in no mean, `models.core`), padded nodes have no unmasked edge. So the model's output on
-the static graph equals its output on the graph itself (up to float rounding of larger products). A
-type absent from a graph (no point cloud at this step) is present with every edge masked.
+The eager builder (`graphs.build`) makes a graph whose edge counts are data (a radius query's pairs),
+and a point cloud whose size changes with every step. Here every shape is a host number fixed in
+advance (`StaticLayout`):
+- node rows: the batch's mesh nodes and collider vertices, and `points` rows for the point cloud of
+  one step (the largest cloud of the batch's steps; the rest are padding rows whose batch value is
+  `num_graphs`, which neither find nor are found);
+- per radius edge type an edge capacity: the static search (`graphs.search`) gives each query at most
+  `max_num_neighbors` neighbours in a fixed-width row, and `compact` packs the valid pairs into the
+  capacity's prefix with a mask (`edge_mask`: the core sends a masked edge's message to a sink row and
+  counts it in no mean, `models.core`), so the model's output equals its output on the eager graph up to
+  the rounding of sums taken in another order.
+The numbers a step cannot know without reading the device are returned as tensors (`StaticChecks`):
+how many pairs each edge type needed (more than its capacity: the caller grows it and repeats the step)
+and the largest neighbour count of a node (more than `max_num_neighbors`: the neighbour check's error).
 
-Capacities start at what the first graph needs times `margin` (rounded up to a multiple of
-`multiple`); a later graph that needs more grows them, which the caller learns from `fill`'s return
-value (a captured step is then captured anew). Node counts of mesh and collider are fixed for a batch;
-points (whose counts change) are padded like edges.
+A type absent from a scene (no collider) is absent from the layout; the point type is present in every
+step of a model that uses points, with all its edges masked where a graph has no cloud at that step.
+
+`TensorGraph` is the part of PyG's HeteroData that the models read (`graph[type].x`, `.edge_index`,
+`.edge_attr`, `.edge_mask`, `node_types`, `edge_types`, `num_graphs`) as plain attributes, which
+`torch.compile` traces (HeteroData's storage machinery it does not).
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field, replace
 
 import torch
 from torch import Tensor
-from torch_geometric.data import HeteroData
+
+from ..phases import phase
+from .build import relative_features
+from .connectivity import Connectivity
+from .search import compact, static_radius
+from .types import EDGE_TYPES, MESH_EDGE, WORLD_EDGE
 
 EdgeType = tuple[str, str, str]
 
 
-def _capacity(need: int, margin: float, multiple: int) -> int:
+class TensorStore:
+    """The tensors of one node or edge type, as attributes (`"edge_mask" in store` as in PyG)."""
+
+    def __init__(self, **tensors: Tensor):
+        self.__dict__.update(tensors)
+
+    def __contains__(self, key: str) -> bool:
+        return key in self.__dict__
+
+    @property
+    def num_nodes(self) -> int:
+        return self.x.size(0)
+
+
+class TensorGraph:
+    """A batched heterogeneous graph as the models read it (module docstring)."""
+
+    def __init__(self, num_graphs: int):
+        self.num_graphs = num_graphs
+        self.stores: dict = {}
+
+    def __getitem__(self, key) -> TensorStore:
+        return self.stores[key]
+
+    def __contains__(self, key) -> bool:
+        return key in self.stores
+
+    def add(self, key, **tensors: Tensor) -> TensorStore:
+        self.stores[key] = TensorStore(**tensors)
+        return self.stores[key]
+
+    @property
+    def node_types(self) -> list[str]:
+        return [k for k in self.stores if isinstance(k, str)]
+
+    @property
+    def edge_types(self) -> list[EdgeType]:
+        return [k for k in self.stores if isinstance(k, tuple)]
+
+
+def round_up(need: int, margin: float = 1.25, multiple: int = 64) -> int:
+    """A capacity for `need` rows: need x margin rounded up to a multiple of `multiple` (at least one)."""
     return max(multiple, int(math.ceil(need * margin / multiple)) * multiple)
 
 
-class StaticGraph:
-    """Fixed-capacity buffers for graphs of the node types `node_dims` {type: feature width} and edge
-    types `edge_dims` {type: feature width} (a model's input widths) on `device`."""
+@dataclass(frozen=True)
+class StaticLayout:
+    """The host numbers that fix every shape of a static graph (module docstring).
 
-    def __init__(self, node_dims: dict[str, int], edge_dims: dict[EdgeType, int], device,
-                 margin: float = 1.25, multiple: int = 64):
-        if margin < 1 or multiple < 1:
-            raise ValueError(f"need margin >= 1 and multiple >= 1, got {margin}, {multiple}")
-        self.node_dims, self.edge_dims = dict(node_dims), dict(edge_dims)
-        self.device, self.margin, self.multiple = torch.device(device), margin, multiple
-        self.graph: HeteroData | None = None
+    num_graphs: B; nodes: {node type: rows} (mesh and collider exact, point a capacity); spans: {node
+    type: rows of the largest graph} (the search's candidates per query); edges: {radius edge type:
+    capacity} for the queried direction of each type (a cross type's flipped copy shares it)."""
 
-    def capacities(self) -> dict:
-        """{node or edge type: rows} of the current buffers ({} before the first `fill`)."""
-        if self.graph is None:
-            return {}
-        return {**{t: self.graph[t].num_nodes for t in self.node_dims},
-                **{t: self.graph[t].edge_index.size(1) for t in self.edge_dims}}
+    num_graphs: int
+    nodes: dict = field(hash=False)
+    spans: dict = field(hash=False)
+    edges: dict = field(hash=False)
 
-    def _needs(self, graph: HeteroData) -> dict:
-        unknown = [t for t in (*graph.node_types, *graph.edge_types) if t not in self.node_dims and
-                   t not in self.edge_dims]
-        if unknown:
-            raise KeyError(f"types {unknown} of the graph are not among the model's {list(self.node_dims)} + "
-                           f"{list(self.edge_dims)}")
-        nodes = {t: graph[t].num_nodes if t in graph.node_types else 0 for t in self.node_dims}
-        edges = {t: graph[t].edge_index.size(1) if t in graph.edge_types else 0 for t in self.edge_dims}
-        return {**nodes, **edges}
-
-    def _allocate(self, needs: dict, fixed_nodes: dict) -> None:
-        old = self.capacities()
-        data = HeteroData()
-        for t, width in self.node_dims.items():
-            rows = fixed_nodes[t] if t in fixed_nodes else max(old.get(t, 0), _capacity(needs[t], self.margin,
-                                                                                         self.multiple))
-            data[t].x = torch.zeros(rows, width, device=self.device)
-        for t, width in self.edge_dims.items():
-            rows = max(old.get(t, 0), _capacity(needs[t], self.margin, self.multiple))
-            data[t].edge_index = torch.zeros(2, rows, dtype=torch.long, device=self.device)
-            data[t].edge_attr = torch.zeros(rows, width, device=self.device)
-            data[t].edge_mask = torch.zeros(rows, dtype=torch.bool, device=self.device)
-        self.graph = data
-
-    def fill(self, graph: HeteroData) -> tuple[HeteroData, bool]:
-        """Copy `graph` into the buffers: (the static graph, True when the buffers were (re)allocated: a
-        first graph, other mesh or collider counts, or more rows than a capacity holds)."""
-        needs = self._needs(graph)
-        # mesh and collider counts are the batch's: a change means another batch, not growth
-        fixed = {t: needs[t] for t in ("mesh", "collider") if t in self.node_dims}
-        caps = self.capacities()
-        fresh = (not caps or any(caps[t] != n for t, n in fixed.items())
-                 or any(needs[t] > caps[t] for t in needs if t not in fixed))
-        if fresh:
-            self._allocate(needs, fixed)
-        static = self.graph
-        for t in self.node_dims:
-            if t in graph.node_types and static[t].x.shape[1]:
-                static[t].x[:needs[t]].copy_(graph[t].x)
-        for t in self.edge_dims:
-            n, store = needs[t], static[t]
-            if n:
-                store.edge_index[:, :n].copy_(graph[t].edge_index)
-                store.edge_attr[:n].copy_(graph[t].edge_attr)
-            store.edge_mask[:n].fill_(True)
-            store.edge_mask[n:].fill_(False)
-        static.num_graphs = graph.num_graphs
-        return static, fresh
+    def grown(self, needed: dict[EdgeType, int], margin: float = 1.25) -> StaticLayout:
+        """The layout with every edge capacity that `needed` exceeds grown to hold it with a margin."""
+        edges = {t: max(c, round_up(needed.get(t, 0), margin)) if needed.get(t, 0) > c else c
+                 for t, c in self.edges.items()}
+        return replace(self, edges=edges)
 
 
-def unmasked(store) -> Tensor:
-    """The edge_index [2, E] of an edge store without its masked edges (all of them without a mask)."""
-    if "edge_mask" not in store:
-        return store.edge_index
-    return store.edge_index[:, store.edge_mask]
+def queried_types(connectivity: Connectivity, node_types) -> list[EdgeType]:
+    """The radius edge types that a graph with `node_types` builds by a query, in `EDGE_TYPES` order: every
+    type with a radius > 0 whose ends exist, a cross type once (its flipped twin comes with it)."""
+    radii, out = connectivity.radii(), []
+    for t in EDGE_TYPES:
+        if t == MESH_EDGE or radii[t] <= 0 or t[0] not in node_types or t[2] not in node_types:
+            continue
+        if t[0] != t[2] and (t[2], t[1], t[0]) in out:
+            continue
+        out.append(t)
+    return out
+
+
+@dataclass
+class StaticChecks:
+    """What one static build could not check without a read (tensors): needed [types] long, the pairs
+    each queried type found (compare with its capacity); most [types, 3] long, per type the largest
+    neighbour count of a node, its side (0: the query side, the type's destination; 1: the source) and
+    its row (`graphs.build.NeighbourCheck`'s table)."""
+
+    needed: Tensor
+    most: Tensor
+
+
+def static_graph(layout: StaticLayout, connectivity: Connectivity, mesh_pos: Tensor, mesh_rest: Tensor,
+                 mesh_edges: Tensor, fixed: Tensor, mesh_batch: Tensor, collider_pos: Tensor | None,
+                 collider_next: Tensor | None, collider_batch: Tensor | None, points: Tensor | None,
+                 point_batch: Tensor | None, use_points: Tensor | None, material: Tensor | None = None,
+                 mesh_edge_mask: Tensor | None = None) -> tuple[TensorGraph, StaticChecks]:
+    """The static graph of B = layout.num_graphs states (module docstring): the eager builder's features
+    and edge rules (`graphs.build`) on fixed-capacity buffers.
+
+    mesh_pos, mesh_rest [N, d]; mesh_edges [2, Em]; fixed [N] bool; mesh_batch [N] (sorted; padding rows,
+    if any, carry B); collider_pos, collider_next [K, d], collider_batch [K] (None: no collider); points
+    [P, d] and point_batch [P] (sorted, padding B; P = layout.nodes["point"]) with use_points [B] bool
+    (which graphs see their cloud in this step), None for a model without points; material [B] or None;
+    mesh_edge_mask [Em] bool: which mesh edges are real (padded batches), None: all.
+    """
+    with phase("graph construction"):
+        return _static_graph(layout, connectivity, mesh_pos, mesh_rest, mesh_edges, fixed, mesh_batch, collider_pos,
+                             collider_next, collider_batch, points, point_batch, use_points, material, mesh_edge_mask)
+
+
+def _static_graph(layout, connectivity, mesh_pos, mesh_rest, mesh_edges, fixed, mesh_batch, collider_pos,
+                  collider_next, collider_batch, points, point_batch, use_points, material, mesh_edge_mask):
+    B = layout.num_graphs
+    graph = TensorGraph(B)
+    x = fixed.to(mesh_pos.dtype)[:, None]
+    if material is not None:
+        x = torch.cat([x, material.to(mesh_pos.dtype)[mesh_batch.clamp(max=B - 1), None]], dim=1)
+    nodes = {"mesh": (mesh_pos, mesh_batch)}
+    graph.add("mesh", x=x, pos=mesh_pos, batch=mesh_batch)
+    if "collider" in layout.nodes:
+        graph.add("collider", x=collider_next - collider_pos, pos=collider_pos, batch=collider_batch)
+        nodes["collider"] = (collider_pos, collider_batch)
+    if "point" in layout.nodes:
+        graph.add("point", x=points.new_zeros(points.size(0), 0), pos=points, batch=point_batch)
+        nodes["point"] = (points, point_batch)
+    mesh_features = torch.cat([relative_features(mesh_pos, mesh_pos, mesh_edges),
+                               relative_features(mesh_rest, mesh_rest, mesh_edges)], dim=1)
+    if mesh_edge_mask is None:
+        graph.add(MESH_EDGE, edge_index=mesh_edges, edge_attr=mesh_features)
+    else:
+        graph.add(MESH_EDGE, edge_index=mesh_edges, edge_attr=mesh_features, edge_mask=mesh_edge_mask)
+    radii, cap = connectivity.radii(), connectivity.max_num_neighbors
+    needed, most = [], []
+    for edge_type, capacity in layout.edges.items():
+        src, _, dst = edge_type
+        (x_pos, x_batch), (y_pos, y_batch) = nodes[src], nodes[dst]
+        active = y_batch < B
+        if "point" in (src, dst):  # the graphs that see their cloud in this step
+            active = active & use_points[y_batch.clamp(max=B - 1)]
+        found = static_radius(x_pos, y_pos, radii[edge_type], x_batch, y_batch, B, cap, layout.spans[src],
+                              exclude_self=src == dst,
+                              exclude=mesh_edges if edge_type == WORLD_EDGE else None)
+        found.mask &= active[:, None]
+        found.count = found.count * active
+        index, mask, total = compact(found, capacity)
+        features = relative_features(x_pos, y_pos, index)
+        graph.add(edge_type, edge_index=index, edge_attr=features, edge_mask=mask)
+        query_most, query_at = found.count.max(dim=0)
+        if src != dst:
+            graph.add((dst, edge_type[1], src), edge_index=index.flip(0),
+                      edge_attr=torch.cat([-features[:, :-1], features[:, -1:]], dim=1), edge_mask=mask)
+            per_source = torch.zeros(x_pos.size(0), dtype=torch.long, device=x_pos.device).index_add_(
+                0, index[0], mask.long())
+            source_most, source_at = per_source.max(dim=0)
+            side = (source_most > query_most).long()
+            row = torch.stack([torch.maximum(query_most, source_most), side,
+                               torch.where(side.bool(), source_at, query_at)])
+        else:
+            row = torch.stack([query_most, torch.zeros_like(query_most), query_at])
+        needed.append(total)
+        most.append(row)
+    if not needed:
+        empty = mesh_batch.new_zeros(0)
+        return graph, StaticChecks(empty, empty.view(0, 3))
+    return graph, StaticChecks(torch.stack(needed), torch.stack(most))
+
+
+def measure_pairs(batch, connectivity: Connectivity, layout: StaticLayout) -> dict[EdgeType, int]:
+    """{queried edge type: the most pairs one state of `batch` (a `TrajectoryBatch`) has}, over its true
+    states with every point cloud, by the static search (one read): where edge capacities start."""
+    radii, cap, counts = connectivity.radii(), connectivity.max_num_neighbors, []
+    if not layout.edges:
+        return {}
+    for t in range(batch.num_steps):
+        nodes = {"mesh": (batch.positions[t], batch.mesh_batch)}
+        if "collider" in layout.nodes:
+            nodes["collider"] = (batch.collider[t], batch.collider_batch)
+        if "point" in layout.nodes:
+            nodes["point"] = (batch.points[t], batch.point_batch[t])
+        for edge_type in layout.edges:
+            (xp, xb), (yp, yb) = nodes[edge_type[0]], nodes[edge_type[2]]
+            found = static_radius(xp, yp, radii[edge_type], xb, yb, layout.num_graphs, cap, layout.spans[edge_type[0]],
+                                  exclude_self=edge_type[0] == edge_type[2],
+                                  exclude=batch.edges if edge_type == WORLD_EDGE else None)
+            counts.append(found.mask.sum())
+    most = torch.stack(counts).view(batch.num_steps, len(layout.edges)).amax(0).tolist()
+    return dict(zip(layout.edges, most))

@@ -48,6 +48,7 @@ from torch import Tensor, nn
 from torch_geometric.data import HeteroData
 
 from ..evaluation.capture import StaticStep
+from .static_training import StaticTrainStep
 from ..evaluation.evaluate import MetricTable, evaluate_batch
 from ..reports import metrics_markdown
 from ..evaluation.rollout import rollout
@@ -186,6 +187,7 @@ class GraphSimulator(pl.LightningModule):
         self.lstm = nn.LSTMCell(latent, latent) if self.recurrent else None
         self._test_table: MetricTable | None = None
         self.static_rollouts, self._static_step = False, None  # `rollout_step`
+        self.static_training, self._static_train = False, None  # `training_step`
         # the hot path's checks, read at logging intervals (`raise_if_checks_failed`), not in every step
         self.loss_check = DeferredCheck()
         self.neighbour_check = NeighbourCheck(self.connectivity, what="training")
@@ -247,14 +249,32 @@ class GraphSimulator(pl.LightningModule):
 
     def rollout_step(self):
         """The step function `evaluate`, `rollout` and `predict` roll out with: `step`, or with `static_rollouts`
-        set (a runtime setting, e.g. by the `StaticRollouts` callback) a `StaticStep` on static-shape graphs,
-        captured as a CUDA graph on a GPU (`evaluation.capture`; kept between calls, so validations reuse it)."""
+        set (a runtime setting, e.g. by the `StaticRollouts` callback) a `StaticStep`: the whole step (graph,
+        model, integration, checks) on static shapes, captured as a CUDA graph on a GPU (`evaluation.capture`;
+        kept between calls, so validations reuse it; dropped when the weights are loaded anew or moved or
+        cast, `_apply`, `_load_from_state_dict`)."""
         if not self.static_rollouts:
             return self.step
         device = next(self.parameters()).device
-        if self._static_step is None or self._static_step.buffers.device != device:
+        if self._static_step is None or self._static_step.device != device:
             self._static_step = StaticStep(self)
         return self._static_step
+
+    def _apply(self, fn, *args, **kwargs):
+        self._static_step = self._static_train = None  # a recorded step reads the old tensors' memory
+        return super()._apply(fn, *args, **kwargs)
+
+    def _load_from_state_dict(self, *args, **kwargs) -> None:
+        # the normalizers' cached masks are made anew: a recording would read freed ones
+        self._static_step = self._static_train = None
+        super()._load_from_state_dict(*args, **kwargs)
+
+    def static_train_step(self) -> StaticTrainStep:
+        """The static training step (`models.static_training`), kept between steps (dropped like `rollout_step`'s)."""
+        device = next(self.parameters()).device
+        if self._static_train is None or self._static_train.device != device:
+            self._static_train = StaticTrainStep(self)
+        return self._static_train
 
     # ---- training -------------------------------------------------------------------------
     def training_graphs(self, batch: TrajectoryBatch, train: bool = True) -> list[tuple[HeteroData, Tensor]]:
@@ -336,6 +356,8 @@ class GraphSimulator(pl.LightningModule):
         """Read the deferred checks of the steps so far (one sync): a non-finite training loss raises
         FloatingPointError naming the global step, the trajectory of the batch and the node; a node over the
         neighbour cap raises the graph builder's ValueError naming the step."""
+        if self._static_train is not None:
+            self._static_train.read_capacities()
         self.neighbour_check.raise_if_failed()
         failure = self.loss_check.failure()
         if failure is not None:
@@ -355,12 +377,34 @@ class GraphSimulator(pl.LightningModule):
         """More normalization statistics from a training graph, for models with more normalizers."""
 
     def training_step(self, batch: TrajectoryBatch, batch_idx: int) -> Tensor:
+        if self.static_training:
+            return self._static_training_step(batch)
         loss, groups = self.window_loss(batch, train=True, by_points=True)
         sync = self._world_size() > 1  # under DDP the logged loss is the mean over the ranks' batches
         # not on the progress bar: Lightning reads progress-bar values back from the device after every batch
         self.log("train/loss", loss, batch_size=batch.num_graphs, sync_dist=sync)
         for name, value in groups.items():  # a group absent from one rank's batch: that rank's value alone
             self.log(f"train/loss_{name}", value.detach(), batch_size=batch.num_graphs)
+        return loss
+
+    def _static_training_step(self, batch: TrajectoryBatch) -> Tensor:
+        """One optimizer step by the static training step (manual optimization: the `StaticTraining` callback);
+        Lightning's step count advances through its optimizer wrapper's hooks, and the lr schedule steps after."""
+        optimizer = self.optimizers()
+        step = self.static_train_step()
+        optimizer._on_before_step()
+        loss = step.step(batch, optimizer.optimizer)
+        optimizer._on_after_step()
+        scheduler = self.lr_schedulers()
+        if scheduler is not None:
+            scheduler.step()
+        sync = self._world_size() > 1
+        self.log("train/loss", loss, batch_size=batch.num_graphs, sync_dist=sync)
+        use = step.last_use
+        for name, value, present in (("points", step.buffers.groups[0], use is not None and bool(use.any())),
+                                     ("no_points", step.buffers.groups[1], use is None or not bool(use.all()))):
+            if present:
+                self.log(f"train/loss_{name}", value, batch_size=batch.num_graphs)
         return loss
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
@@ -502,6 +546,8 @@ class GraphSimulator(pl.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         check_format(checkpoint, "the checkpoint")
         saved = checkpoint.get("connectivity")
+        if saved is not None:  # written before the search was a setting: this model's search
+            saved = {"search": self.connectivity.search, **saved}
         if saved is not None and saved != dataclasses.asdict(self.connectivity):
             warnings.warn(f"connectivity preset {self.hparams.connectivity!r} changed since the checkpoint was "
                           f"written; using the checkpoint's radii {saved}", stacklevel=2)

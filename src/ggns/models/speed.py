@@ -1,7 +1,8 @@
 """Speed settings of a run, as Lightning callbacks (add them with `--trainer.callbacks+=ggns.models.speed.<Name>`
 or in a config's `trainer.callbacks`); what each does to speed and numbers is measured in docs/speed.md.
 
-    StaticRollouts    validation, test and predict rollouts on static-shape graphs: CUDA-graph replays on a GPU
+    StaticRollouts    validation, test and predict rollouts as whole static steps: CUDA-graph replays on a GPU
+    StaticTraining    every training step (forward, backward, Adam) on static shapes: one CUDA-graph replay on a GPU
     MatmulPrecision   torch.set_float32_matmul_precision: TF32 products on NVIDIA GPUs ("high"); changes numbers
     CompileProcessor  torch.compile of the message-passing blocks (dynamic shapes); on the CPU it is slower
 
@@ -16,17 +17,36 @@ import torch
 
 
 class StaticRollouts(pl.Callback):
-    """Rollouts of validation, test and predict on static-shape graphs (`GraphSimulator.static_rollouts`):
-    on a GPU every rollout step is a CUDA graph replay (`evaluation.capture.StaticStep`), on the CPU the
-    padded step runs eagerly (no faster there: it is how the GPU path is tested). Models whose step has
-    state (GGNS+LSTM, GGNSID) keep their eager rollouts, with a warning."""
+    """Rollouts of validation, test and predict as whole static steps (`GraphSimulator.static_rollouts`): the
+    graph, the model, the integration and the checks on static shapes (`evaluation.capture.StaticStep`), on a
+    GPU one CUDA-graph replay per step, on the CPU the same tensor program eagerly (how the GPU path is
+    tested; not faster there). GGNSID, whose step fuses a material estimate, keeps its eager rollouts, with
+    a warning."""
 
     def setup(self, trainer: pl.Trainer, pl_module, stage: str) -> None:
-        if pl_module.recurrent or pl_module.material_input:
-            warnings.warn(f"StaticRollouts: {type(pl_module).__name__} has a step with state; its rollouts stay eager",
-                          stacklevel=2)
+        if pl_module.material_input:
+            warnings.warn(f"StaticRollouts: {type(pl_module).__name__} fuses a material estimate between steps; its "
+                          f"rollouts stay eager", stacklevel=2)
             return
         pl_module.static_rollouts = True
+
+
+class StaticTraining(pl.Callback):
+    """Every training step on static shapes (`GraphSimulator.static_training`, `models.static_training`): the
+    window's graphs, the model, the loss, backward and the fused Adam step with no host read, one CUDA-graph
+    replay on a GPU (float32 without autocast; else the same program eagerly). Lightning stays the loop
+    (logging, checkpoints, resume); the model switches to manual optimization. GGNSID keeps the eager step,
+    with a warning."""
+
+    def setup(self, trainer: pl.Trainer, pl_module, stage: str) -> None:
+        if stage != "fit":
+            return
+        if pl_module.material_input:
+            warnings.warn(f"StaticTraining: {type(pl_module).__name__}'s loss reads more than its graph; its training "
+                          f"steps stay eager", stacklevel=2)
+            return
+        pl_module.static_training = True
+        pl_module.automatic_optimization = False
 
 
 class MatmulPrecision(pl.Callback):

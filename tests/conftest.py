@@ -162,6 +162,22 @@ def make(cls, seed: int = 0, **kwargs):
     return cls(**{**SMALL, **kwargs})
 
 
+def eager_losses(model, optimizer, batches) -> list[float]:
+    """The losses of the eager training steps (`window_loss`, backward, the optimizer) on `batches`, with the
+    host's generator seeded 1 (as the static steps they are compared with)."""
+    import torch
+
+    torch.manual_seed(1)
+    losses = []
+    for batch in batches:
+        optimizer.zero_grad()
+        loss = model.window_loss(batch)
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    return losses
+
+
 def first_graph(model, batch, use_points=None, t: int = 0):
     """The model's input graph of step t of `batch` (points as the model uses them by default)."""
     from ggns.graphs.state import state_graph

@@ -24,7 +24,7 @@ from ggns.data.schema import read_trajectories
 from ggns.evaluation.schedules import EveryK, Never
 from ggns.graphs.state import state_graph
 from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared, load_simulator
-from conftest import TINY12, make
+from conftest import TINY12, eager_losses, make
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (scripts/gpu_check.sh)")
 
@@ -163,7 +163,7 @@ def test_the_captured_whole_step_replays_the_eager_rollouts_without_a_synchroniz
         eager, _ = rollout(model.step, val, schedule, model.connectivity, model.with_material)
         replayed, _ = rollout(step, val, schedule, model.connectivity, model.with_material)
         torch.testing.assert_close(replayed, eager, rtol=1e-4, atol=1e-6)
-    assert step.recordings == 1
+    assert step.recordings <= 2  # once, and again only if a rollout outgrew the capacities measured on the truth
     step.buffers.t.fill_(0)
     assert _syncs(lambda: [step._run() for _ in range(5)]) == 0
 
@@ -190,7 +190,8 @@ def test_the_recorded_step_survives_weight_updates_reloads_moves_and_autocast(sp
     with torch.autocast("cuda", dtype=torch.bfloat16):
         cast, _ = rollout(reloaded, val, EveryK(1), model.connectivity)
         again, _ = rollout(reloaded, val, EveryK(1), model.connectivity)
-    assert reloaded.recordings == 2 and torch.equal(cast, again)  # the second replays read no freed cache
+    assert reloaded.recordings == 2  # float32, then bf16: recorded anew
+    torch.testing.assert_close(again, cast, rtol=1e-3, atol=1e-5)  # the second replays read no freed cache
     torch.testing.assert_close(cast, eager, rtol=0.1, atol=1e-3)
 
 
@@ -208,18 +209,12 @@ def test_the_captured_training_step_equals_the_eager_one(cls, splits):
     static_optimizer = twin.configure_optimizers()["optimizer"]
     step = StaticTrainStep(twin, margin=4.0)
     assert step.capture
-    torch.manual_seed(1)
-    eager = []
-    for batch in batches:
-        eager_optimizer.zero_grad()
-        loss = model.window_loss(batch)
-        loss.backward()
-        eager_optimizer.step()
-        eager.append(loss.item())
+    eager = eager_losses(model, eager_optimizer, batches)
     torch.manual_seed(1)
     static = [step.step(batch, static_optimizer).item() for batch in batches]
     step.read_capacities()
-    assert step.skipped == 0 and step.recordings == 1
+    assert step.skipped == 0 and step.recordings <= 3  # one per batch shape (bucketed point clouds may differ)
+    assert all(int(state["step"]) == len(batches) for state in static_optimizer.state.values())  # no warm-up step
     torch.testing.assert_close(torch.tensor(static), torch.tensor(eager), rtol=1e-4, atol=1e-6)
     for (name, a), b in zip(model.named_parameters(), twin.parameters()):
         torch.testing.assert_close(b, a, rtol=1e-3, atol=1e-5, msg=name)
@@ -234,13 +229,16 @@ def test_a_fit_with_static_steps_then_a_test_in_one_process_with_workers_and_bf1
 
     data = SimulationDataModule(str(cli_data / TINY12), batch_size=2, generate_missing=False, num_workers=2,
                                 eval_batch_size=2)
-    model = make(GGNS, statistics_batches=1, eval_schedules=("every:1", "never"), test_iou=False)
+    model = make(GGNS, eval_schedules=("every:1", "never"), test_iou=False)  # capacities from every batch's graphs
     trainer = pl.Trainer(max_steps=6, logger=False, enable_progress_bar=False, enable_model_summary=False,
                          limit_val_batches=0, log_every_n_steps=2, accelerator="gpu", devices=1,
                          precision="bf16-mixed", callbacks=[StaticTraining(), StaticRollouts()],
                          default_root_dir=tmp_path)
     trainer.fit(model, data)
     assert trainer.global_step == 6
+    optimizer = model.optimizers().optimizer
+    assert all(int(state["step"]) == 6 for state in optimizer.state.values())  # the recording's warm-up applied none
+    assert math.isclose(float(optimizer.param_groups[0]["lr"]), model.lr_schedule.at(6), rel_tol=1e-6)
     trainer.test(model, data)
     assert all(math.isfinite(s["mean"]) for s in model.test_results.values())
 

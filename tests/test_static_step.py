@@ -24,7 +24,7 @@ from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, MGN, MGNM
 from ggns.models.speed import StaticRollouts, StaticTraining
 from ggns.models.static_training import StaticTrainStep, bucket
 
-from conftest import TINY12, make
+from conftest import TINY12, eager_losses, make
 
 torch_cluster = pytest.importorskip("torch_cluster")
 
@@ -88,6 +88,7 @@ def test_padding_rows_excluded_pairs_and_knn():
     kept = static_radius(x, y, 0.3, bx, by, 4, 64, int(nx.max()), exclude=excluded)
     edges, mask, _ = compact(kept, 4096)
     assert pairs(edges[:, mask]) == pairs(reference.flip(0)) - pairs(excluded)
+    assert torch.equal(kept.count, found.count[:len(y)])  # excluded pairs still count toward the cap
     nearest = static_knn(x, y, 3, bx, by, 4, int(nx.max()))
     edges, mask, _ = compact(nearest, 4096)
     assert pairs(edges[:, mask].flip(0)) == pairs(torch_cluster.knn(x, y, 3, bx, by))
@@ -118,7 +119,7 @@ def test_the_static_rollout_equals_the_eager_one(cls, trajs, val_batch):
         torch.testing.assert_close(static, eager, rtol=1e-5, atol=1e-6)
         if cls is GGNSLSTM:
             torch.testing.assert_close(static_state[0], eager_state[0], rtol=1e-5, atol=1e-6)
-    assert step.recordings == 1  # capacities measured on the batch's true states held every rollout
+    assert step.recordings == 1  # capacities measured on the batch's true states held every rollout here
     torch.testing.assert_close(one_step_predictions(step, val_batch, EveryK(1), model.connectivity, model.with_material),
                                one_step_predictions(model.step, val_batch, EveryK(1), model.connectivity,
                                                     model.with_material), rtol=1e-5, atol=1e-6)
@@ -156,10 +157,7 @@ def test_capacities_that_are_too_small_grow_and_the_steps_are_taken_again(trajs,
     eager, _ = rollout(model.step, val_batch, EveryK(1), model.connectivity)
     step = StaticStep(model, capture=False)
     rollout(step, val_batch, EveryK(1), model.connectivity)
-    step.layout = step.layout.__class__(step.layout.num_graphs, step.layout.nodes, step.layout.spans,
-                                        {t: 8 for t in step.layout.edges})
-    step.buffers.capacity.fill_(8)
-    step._graph = None
+    step.set_capacities({t: 8 for t in step.layout.edges})
     before = step.recordings
     static, _ = rollout(step, val_batch, EveryK(1), model.connectivity, check_every=3)
     torch.testing.assert_close(static, eager, rtol=1e-5, atol=1e-6)
@@ -266,14 +264,7 @@ def test_fifty_static_training_steps_equal_the_eager_ones(cls, optimizer, steps,
         (lambda m: torch.optim.SGD(m.parameters(), lr=1e-3))
     eager_optimizer, static_optimizer = make_optimizer(model), make_optimizer(twin)
     step = StaticTrainStep(twin, margin=4.0)
-    torch.manual_seed(1)
-    eager = []
-    for batch in batches:
-        eager_optimizer.zero_grad()
-        loss = model.window_loss(batch)
-        loss.backward()
-        eager_optimizer.step()
-        eager.append(loss.item())
+    eager = eager_losses(model, eager_optimizer, batches)
     torch.manual_seed(1)
     static = []
     for batch in batches:
@@ -312,9 +303,7 @@ def test_a_step_that_needed_more_edges_is_skipped_and_reported(trajs):
     step = StaticTrainStep(model)
     step.step(batches[0], optimizer)
     step.read_capacities()
-    step.layout = step.layout.__class__(step.layout.num_graphs, step.layout.nodes, step.layout.spans,
-                                        {t: 8 for t in step.layout.edges})
-    step.buffers.capacity.fill_(8)
+    step.set_capacities({t: 8 for t in step.layout.edges})
     before = [p.detach().clone() for p in model.parameters()]
     step.step(batches[2], optimizer)
     assert all(torch.equal(a, b) for a, b in zip(before, model.parameters()))  # skipped by the fused Adam
@@ -330,8 +319,8 @@ def test_a_fit_then_a_test_in_one_process_with_static_steps_workers_and_bf16(cli
     checkpoints, the lr schedule), then a test with static rollouts, data-loader workers, bf16 autocast."""
     data = SimulationDataModule(str(cli_data / TINY12), batch_size=2, generate_missing=False, num_workers=1,
                                 eval_batch_size=2)
-    model = make(GGNS, statistics_batches=1, eval_schedules=("every:1", "never"), test_iou=False,
-                 test_m_plus_10=False)
+    # the statistics pass over every training batch: the static step's edge capacities start from its graphs
+    model = make(GGNS, eval_schedules=("every:1", "never"), test_iou=False, test_m_plus_10=False)
     trainer = pl.Trainer(max_steps=4, logger=False, enable_progress_bar=False, enable_model_summary=False,
                          limit_val_batches=0, log_every_n_steps=2, accelerator="cpu", precision="bf16-mixed",
                          callbacks=[StaticTraining(), StaticRollouts()], default_root_dir=tmp_path)
@@ -347,6 +336,8 @@ def test_a_fit_then_a_test_in_one_process_with_static_steps_workers_and_bf16(cli
         trainer.fit(model, data)
         assert trainer.global_step == 4 and used == [True] * 4
         assert model.lr_schedulers().last_epoch == 4
+        optimizer = model.optimizers().optimizer
+        assert all(int(state["step"]) == 4 for state in optimizer.state.values())  # 4 Adam steps, none skipped
         trainer.test(model, data)
     assert isinstance(model.rollout_step(), StaticStep)
     assert set(model.test_results) >= {"rollout_mse_k1", "rollout_mse_never"}

@@ -37,12 +37,31 @@ from torch import Tensor
 from ..batch import TrajectoryBatch
 from ..phases import phase
 from ..graphs.build import NeighbourCheck
-from ..graphs.static import StaticLayout, measure_pairs, queried_types, static_graph
+from ..graphs.static import StaticLayout, fill_clouds, measure_pairs, queried_types, static_graph
 from .rollout import ESCAPE_FACTOR, check_interval, raise_divergence
 from .schedules import Schedule
 
 
 RECOMPILE_LIMIT = 256  # compiled layouts of `StaticStep.step_function` in one process (`compile=True`)
+SLOTS = 8  # batch shapes whose buffers and recording a `StaticStep` keeps (the oldest dropped beyond)
+
+
+def recording_key(model, device: torch.device) -> tuple:
+    """What a recorded step depends on besides its shapes: the weights' dtype, autocast and the float32 matmul
+    precision (a change of any is recorded anew)."""
+    dtype = next(model.parameters()).dtype
+    autocast = torch.is_autocast_enabled(device.type) and torch.get_autocast_dtype(device.type)
+    return dtype, autocast, torch.get_float32_matmul_precision()
+
+
+def normalizer_masks(model) -> list:
+    """The normalizers' cached masks (`Normalizer.cached_mask`), which a recording reads by address: a
+    statistics update or a reload of a part of the model makes them anew, and the recording must follow."""
+    return [m.cached_mask for m in model.modules() if hasattr(m, "cached_mask")]
+
+
+def same_objects(a: list, b: list) -> bool:
+    return len(a) == len(b) and all(x is y for x, y in zip(a, b))
 
 
 @dataclass
@@ -111,12 +130,18 @@ class StaticStep:
             raise ValueError(f"capture needs the model on a CUDA device, it is on {device}")
         self.model, self.device, self.margin = model, device, margin
         self.compile, self.compile_options = compile, dict(compile_options or {})
+        if self.compile and self.capture and self.compile_options.get("mode") in ("reduce-overhead",
+                                                                                   "max-autotune"):
+            raise ValueError(f"compile mode {self.compile_options['mode']!r} records CUDA graphs of its own, which "
+                             f"cannot nest in the step's recording; use the default mode")
         self.recordings = 0
-        self.layout: StaticLayout | None = None  # its edge capacities only grow
+        self.layout: StaticLayout | None = None  # the current batch's; its edge capacities only grow
         self.buffers: StepBuffers | None = None
         self._batch: TrajectoryBatch | None = None
-        self._graph = None  # the CUDA graph, or the compiled function
-        self._key = None  # what the recording depends on besides the layout (`_recording_key`)
+        # batch shape -> [layout, buffers, recording (a CUDA graph, a compiled function or "eager"), its key,
+        # the normalizer masks it read]
+        self._slots: dict = {}
+        self._slot: list | None = None
 
     # ---- the step itself: tensor operations on the buffers, in place ------------------------------------
     def step_function(self, b: StepBuffers) -> None:
@@ -161,19 +186,33 @@ class StaticStep:
 
     # ---- preparation ----------------------------------------------------------------------------------
     def _prepare(self, batch: TrajectoryBatch) -> None:
-        """The buffers for `batch` (its trajectories copied in); the layout from its host offsets, with edge
-        capacities measured on its true states (one read, per batch) and never shrunk."""
-        old = self.layout
-        layout = layout_for(self.model, batch, old.edges if old is not None else None)
-        measured = measure_pairs(batch, self.model.connectivity, layout)
-        layout = layout.grown(measured, self.margin)
-        same_shapes = (self.buffers is not None and old == layout
-                       and self.buffers.positions.shape == batch.positions.shape
-                       and self.buffers.edges.shape == batch.edges.shape)
-        if not same_shapes:
-            self.layout, self.buffers, self._graph = layout, self._allocate(batch, layout), None
+        """The buffers for `batch`'s shape (a slot per shape, `SLOTS` kept, each with its recording), its
+        trajectories copied in; the layout from its host offsets, with edge capacities measured on its true
+        states (one read, per batch) and never shrunk."""
+        layout = layout_for(self.model, batch, self.layout.edges if self.layout is not None else None)
+        layout = layout.grown(measure_pairs(batch, self.model.connectivity, layout), self.margin)
+        key = (layout.num_graphs, tuple(layout.nodes.items()), tuple(layout.spans.items()), tuple(layout.edges),
+               tuple(batch.positions.shape), batch.edges.size(1), self.model.recurrent)
+        if key not in self._slots:
+            if len(self._slots) >= SLOTS:
+                self._slots.pop(next(iter(self._slots)))
+            with torch.inference_mode(False):  # buffers that a later rollout outside inference mode may update
+                self._slots[key] = [layout, self._allocate(batch, layout), None, None, None]
+        slot = self._slots[key]
+        if slot[0].edges != layout.edges:  # recorded with smaller capacities
+            slot[2] = None
+        slot[0] = layout
+        self.layout, self.buffers, self._slot = layout, slot[1], slot
+        self.buffers.capacity.copy_(torch.tensor(list(layout.edges.values()), dtype=torch.long))
         self._fill(batch)
         self._batch = batch
+
+    def set_capacities(self, edges: dict) -> None:
+        """Set the edge capacities {queried edge type: pairs} of the current batch (recorded anew); they still
+        grow when a step needs more (for tests and experiments)."""
+        self.layout = StaticLayout(self.layout.num_graphs, self.layout.nodes, self.layout.spans, dict(edges))
+        self._slot[0], self._slot[2] = self.layout, None
+        self.buffers.capacity.copy_(torch.tensor(list(self.layout.edges.values()), dtype=torch.long))
 
     def _allocate(self, batch: TrajectoryBatch, layout: StaticLayout) -> StepBuffers:
         T, N, d = batch.positions.shape
@@ -202,7 +241,7 @@ class StaticStep:
 
     def _fill(self, batch: TrajectoryBatch) -> None:
         """Copy `batch` into the buffers (device copies; the point clouds padded with rows of graph B)."""
-        b, B = self.buffers, batch.num_graphs
+        b = self.buffers
         b.positions.copy_(batch.positions)
         b.rest.copy_(batch.rest)
         b.edges.copy_(batch.edges)
@@ -212,46 +251,37 @@ class StaticStep:
             b.collider.copy_(batch.collider)
             b.collider_batch.copy_(batch.collider_batch)
         if b.points is not None:
-            b.points.zero_()
-            b.point_batch.fill_(B)
-            for t in range(batch.num_steps):
-                n = batch.point_range(t)[-1]
-                b.points[t, :n].copy_(batch.points[t])
-                b.point_batch[t, :n].copy_(batch.point_batch[t])
+            fill_clouds(batch, b.points, b.point_batch)
         if b.material is not None:
             batch.require_material("this model")
             b.material.copy_(batch.material)
 
     # ---- recording --------------------------------------------------------------------------------------
-    def _recording_key(self) -> tuple:
-        """What a recorded step depends on besides its layout: the weights' dtype, autocast and the float32
-        matmul precision (a change of any is recorded anew)."""
-        dtype = next(self.model.parameters()).dtype
-        kind = self.device.type
-        autocast = torch.is_autocast_enabled(kind) and torch.get_autocast_dtype(kind)
-        return dtype, autocast, torch.get_float32_matmul_precision()
-
     def _run(self) -> None:
-        """One step: eager, compiled or a replay, recording first where needed."""
-        key = self._recording_key()
-        if self._graph is None or key != self._key:
-            self._record(key)
+        """One step: eager, compiled or a replay, recording first where needed (another dtype, autocast or
+        matmul precision; in a capture, normalizer masks made anew)."""
+        slot, key = self._slot, recording_key(self.model, self.device)
+        if slot[2] is None or slot[3] != key or (self.capture and not same_objects(slot[4],
+                                                                                    normalizer_masks(self.model))):
+            slot[2], slot[3] = self._record(), key
+            slot[4] = normalizer_masks(self.model)
         if self.capture:
-            self._graph.replay()
+            slot[2].replay()
         elif self.compile:
             # every layout is a program of its own: more than dynamo's default 8 compilations of this function
             with torch._dynamo.config.patch(recompile_limit=RECOMPILE_LIMIT):
-                self._graph(self.buffers)
+                slot[2](self.buffers)
         else:
             self.step_function(self.buffers)
 
-    def _record(self, key) -> None:
-        self._key, b = key, self.buffers
+    def _record(self):
+        """The recording of the current slot: a CUDA graph (warmed up on a side stream, the state restored
+        after), a compiled function, or "eager"."""
+        b = self.buffers
         self.recordings += 1
         if not self.capture:
-            self._graph = (torch.compile(self.step_function, fullgraph=True, dynamic=False, **self.compile_options)
-                           if self.compile else "eager")
-            return
+            return (torch.compile(self.step_function, fullgraph=True, dynamic=False, **self.compile_options)
+                    if self.compile else "eager")
         saved = self._save()
         function = (torch.compile(self.step_function, fullgraph=True, dynamic=False, **self.compile_options)
                     if self.compile else self.step_function)
@@ -259,27 +289,32 @@ class StaticStep:
         # autocast's cache of low-precision weight copies is freed when autocast exits: a capture must not
         # read it (later replays would read freed memory), so the capture runs with the cache off
         cast = torch.autocast("cuda", enabled=autocast, dtype=torch.get_autocast_dtype("cuda"), cache_enabled=False)
-        side = torch.cuda.Stream(self.device)
-        side.wait_stream(torch.cuda.current_stream(self.device))
-        with torch.no_grad(), cast, torch.cuda.stream(side), \
-                torch._dynamo.config.patch(recompile_limit=RECOMPILE_LIMIT):
-            for _ in range(2):  # lazy initializations (and a compilation) happen outside the capture
+        with torch.cuda.device(self.device):
+            side = torch.cuda.Stream(self.device)
+            side.wait_stream(torch.cuda.current_stream(self.device))
+            with torch.no_grad(), cast, torch.cuda.stream(side), \
+                    torch._dynamo.config.patch(recompile_limit=RECOMPILE_LIMIT):
+                for _ in range(2):  # lazy initializations (and a compilation) happen outside the capture
+                    function(b)
+                    self._restore(saved)
+            torch.cuda.current_stream(self.device).wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.no_grad(), cast, torch.cuda.graph(graph, capture_error_mode="thread_local"):
                 function(b)
-                self._restore(saved)
-        torch.cuda.current_stream(self.device).wait_stream(side)
-        graph = torch.cuda.CUDAGraph()
-        with torch.no_grad(), cast, torch.cuda.graph(graph, capture_error_mode="thread_local"):
-            function(b)
         self._restore(saved)
-        self._graph = graph
+        return graph
+
+    def __deepcopy__(self, memo):
+        return None  # a copied model records its own step (a CUDA graph cannot be copied)
 
     def _save(self) -> dict:
         """A copy of the step's state (position, hidden state, step, check records)."""
         b = self.buffers
         names = ("pos", "t", "diverged_at", "cap_at", "cap_table", "overflow_at", "needed")
-        saved = {name: getattr(b, name).clone() for name in names}
-        if b.hidden is not None:
-            saved["hidden"] = tuple(h.clone() for h in b.hidden)
+        with torch.inference_mode(False):
+            saved = {name: getattr(b, name).clone() for name in names}
+            if b.hidden is not None:
+                saved["hidden"] = tuple(h.clone() for h in b.hidden)
         return saved
 
     def _restore(self, saved: dict) -> None:
@@ -353,16 +388,16 @@ class StaticStep:
         (diverged, capped, overflow), needed = values[:3], dict(zip(self.layout.edges, values[3:]))
         failures = [s for s in (diverged, capped) if s >= 0]
         if overflow >= 0 and not (failures and min(failures) < overflow):
+            # the steps from the overflow on ran on graphs missing edges: grow, take them again
             self.layout = self.layout.grown(needed, self.margin)
+            self._slot[0], self._slot[2] = self.layout, None
             b.capacity.copy_(torch.tensor(list(self.layout.edges.values()), dtype=torch.long))
-            self._graph = None
             return True
-        if diverged >= 0 and (capped < 0 or diverged <= capped):
+        if diverged >= 0:  # as the eager rollout: a divergence first, then the neighbour cap
             raise_divergence(b.out[diverged + 1], b.origin, float(b.extent), batch, diverged)
         if capped >= 0:
             check = NeighbourCheck(self.model.connectivity, what="rollout")
             check.step = capped
-            table = dict(zip(self.layout.edges, b.cap_table))
-            check.record(table)
+            check.record(dict(zip(self.layout.edges, b.cap_table)))
             check.raise_if_failed()
         return False

@@ -97,9 +97,9 @@ def static_radius(x: Tensor, y: Tensor, r: float, batch_x: Tensor, batch_y: Tens
         within = valid & (d2 < r * r)
         if exclude_self:
             within &= cand != torch.arange(rows.start, rows.stop, device=y.device)[:, None]
+        count.append(within.sum(1))  # excluded pairs count, as in the eager builder (`graphs.build`)
         if exclude is not None and exclude.size(1):
             within &= ~_excluded(exclude, rows, starts, batch_y, num_graphs, span, within.shape)
-        count.append(within.sum(1))
         if span <= cap:  # every candidate fits: keep them in their order
             index.append(torch.where(within, cand, 0))
             mask.append(within)

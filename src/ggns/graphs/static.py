@@ -226,3 +226,14 @@ def measure_pairs(batch, connectivity: Connectivity, layout: StaticLayout) -> di
             counts.append(found.mask.sum())
     most = torch.stack(counts).view(batch.num_steps, len(layout.edges)).amax(0).tolist()
     return dict(zip(layout.edges, most))
+
+
+def fill_clouds(batch, points: Tensor, point_batch: Tensor) -> None:
+    """Copy the point clouds of every step of `batch` (a `TrajectoryBatch`) into buffers points [T, P, d] and
+    point_batch [T, P]: each step's cloud in the first rows, the rest padding rows of graph B (zeros)."""
+    points.zero_()
+    point_batch.fill_(batch.num_graphs)
+    for t in range(batch.num_steps):
+        n = batch.point_range(t)[-1]
+        points[t, :n].copy_(batch.points[t])
+        point_batch[t, :n].copy_(batch.point_batch[t])

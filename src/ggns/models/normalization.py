@@ -66,6 +66,11 @@ class Normalizer(nn.Module):
         self._mask: Tensor | None = None  # varies() as 0/1, cached: `_varies_as`
 
     @property
+    def cached_mask(self) -> Tensor | None:
+        """The cached `varies()` mask (None until a forward made it): a recorded step reads it by address."""
+        return self._mask
+
+    @property
     def frozen(self) -> bool:
         return bool(self.is_frozen)
 

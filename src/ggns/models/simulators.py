@@ -188,6 +188,9 @@ class GraphSimulator(pl.LightningModule):
         self._test_table: MetricTable | None = None
         self.static_rollouts, self._static_step = False, None  # `rollout_step`
         self.static_training, self._static_train = False, None  # `training_step`
+        # the most edges of each type per graph in a batch of the statistics pass (`fit_normalizers`): where the
+        # static training step's edge capacities start (not saved: a resumed fit measures its first batch)
+        self.statistics_edges: dict = {}
         # the hot path's checks, read at logging intervals (`raise_if_checks_failed`), not in every step
         self.loss_check = DeferredCheck()
         self.neighbour_check = NeighbourCheck(self.connectivity, what="training")
@@ -449,6 +452,9 @@ class GraphSimulator(pl.LightningModule):
                 self.target_normalizer.update(target[free])
                 self.update_statistics(graph, batch)
                 count += batch.num_graphs
+                for edge_type in graph.edge_types:  # where the static training step's capacities start
+                    per_graph = graph[edge_type].edge_index.size(1) / batch.num_graphs
+                    self.statistics_edges[edge_type] = max(self.statistics_edges.get(edge_type, 0.0), per_graph)
         if count == 0:
             raise ValueError("no training samples for the normalization statistics")
         if self._world_size() > 1:  # each rank saw its own windows: merge, so that every rank normalizes alike

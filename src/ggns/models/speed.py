@@ -34,9 +34,10 @@ class StaticRollouts(pl.Callback):
 class StaticTraining(pl.Callback):
     """Every training step on static shapes (`GraphSimulator.static_training`, `models.static_training`): the
     window's graphs, the model, the loss, backward and the fused Adam step with no host read, one CUDA-graph
-    replay on a GPU (float32 without autocast; else the same program eagerly). Lightning stays the loop
-    (logging, checkpoints, resume); the model switches to manual optimization. GGNSID keeps the eager step,
-    with a warning."""
+    replay on a GPU (autocast's weight cache off while it records; on the CPU the same program eagerly).
+    Lightning stays the loop (logging, checkpoints, resume); the model switches to manual optimization.
+    One process only (its backward is not DDP's), float32 or bf16 (no loss scaling). GGNSID keeps the eager
+    step, with a warning."""
 
     def setup(self, trainer: pl.Trainer, pl_module, stage: str) -> None:
         if stage != "fit":
@@ -45,6 +46,12 @@ class StaticTraining(pl.Callback):
             warnings.warn(f"StaticTraining: {type(pl_module).__name__}'s loss reads more than its graph; its training "
                           f"steps stay eager", stacklevel=2)
             return
+        if trainer.world_size > 1:
+            raise ValueError("StaticTraining runs in one process: its backward is not DDP's (whose all-reduce a "
+                             "recorded step could not replay); use --trainer.devices 1 or leave it out")
+        if str(trainer.precision).startswith("16"):
+            raise ValueError(f"StaticTraining does not scale the loss, which float16 ({trainer.precision}) needs; "
+                             f"use 32-true or bf16-mixed")
         pl_module.static_training = True
         pl_module.automatic_optimization = False
 

@@ -33,7 +33,8 @@ import torch
 from torch import Tensor
 
 from ..batch import TrajectoryBatch
-from ..graphs.static import StaticLayout, measure_pairs, queried_types, static_graph
+from ..evaluation.capture import normalizer_masks, recording_key
+from ..graphs.static import StaticLayout, fill_clouds, measure_pairs, queried_types, static_graph
 from ..phases import host_side, phase
 from .training_noise import smooth_field
 
@@ -80,6 +81,8 @@ class StaticTrainStep:
     """The static training step of `model` (module docstring). capture: record forward, backward and the
     optimizer step as one CUDA graph (default: on a GPU, in float32 without autocast)."""
 
+    SLOTS = 16  # recordings kept (batch shapes), the oldest dropped beyond
+
     def __init__(self, model, capture: bool | None = None, margin: float = 1.5):
         if model.material_input:
             raise ValueError(f"{type(model).__name__}: a static training step needs a loss that reads only the "
@@ -89,10 +92,12 @@ class StaticTrainStep:
         self.capture = self.device.type == "cuda" if capture is None else capture
         if self.capture and self.device.type != "cuda":
             raise ValueError(f"capture needs the model on a CUDA device, it is on {self.device}")
-        self.layout: StaticLayout | None = None
+        self.layout: StaticLayout | None = None  # the current batch's; its edge capacities are everyone's
         self.steps: int | None = None  # T of the windows
         self.buffers: WindowBuffers | None = None
-        self.recordings, self.skipped, self._graph, self._optimizer = 0, 0, None, None
+        self.recordings, self.skipped, self._slot = 0, 0, None
+        self._slots: dict = {}  # shape key -> [layout, buffers, recording, key of the recording]
+        self._shared: dict | None = None  # the counters every slot's buffers share (`_allocate`)
         self.last_use: Tensor | None = None  # the host's imputation draws of the last prepared batch
 
     # ---- the tensor program -------------------------------------------------------------------------
@@ -160,11 +165,15 @@ class StaticTrainStep:
                 b.most.copy_(table.gather(0, worst[None, :, None].expand(1, -1, 3))[0])
         return loss
 
-    def train_function(self, b: WindowBuffers, optimizer) -> None:
-        """Forward, backward and the optimizer step (skipped when edges were dropped: `found_inf`)."""
+    def train_function(self, b: WindowBuffers, optimizer, apply: bool = True) -> None:
+        """Forward, backward and the optimizer step (skipped when edges were dropped: `found_inf`; always
+        skipped when not `apply`, the warm-up of a recording)."""
         loss = self.loss_function(b, train=True)
         loss.backward()
-        b.skipped.add_(b.found_inf.long())
+        if apply:
+            b.skipped.add_(b.found_inf.long())
+        else:
+            b.found_inf.fill_(1.0)
         fused = optimizer.defaults.get("fused")
         if fused:  # the fused Adam skips a step whose found_inf is 1 (read on the device)
             optimizer.found_inf = b.found_inf
@@ -190,6 +199,10 @@ class StaticTrainStep:
         edges = {t: old.get(t, 0) for t in queried_types(self.model.connectivity, nodes)}
         return StaticLayout(B, nodes, spans, edges)
 
+    def _shape_key(self, layout: StaticLayout, batch: TrajectoryBatch) -> tuple:
+        return (layout.num_graphs, tuple(layout.nodes.items()), tuple(layout.spans.items()), tuple(layout.edges),
+                batch.num_steps, bucket(batch.edges.size(1)))
+
     def _allocate(self, batch: TrajectoryBatch, layout: StaticLayout) -> WindowBuffers:
         T, _, d = batch.positions.shape
         N, B, types = layout.nodes["mesh"], layout.num_graphs, len(layout.edges)
@@ -203,22 +216,43 @@ class StaticTrainStep:
             collider=zeros(T, K, d) if K else None, collider_batch=zeros(K, kind=torch.long) if K else None,
             points=zeros(T, P, d) if P else None, point_batch=zeros(T, P, kind=torch.long) if P else None,
             use=zeros(B, kind=torch.bool) if P else None, material=zeros(B) if self.model.with_material else None,
-            field_std=zeros(()), capacity=torch.tensor(list(layout.edges.values()), dtype=torch.long, device=device),
-            found_inf=zeros(()), skipped=zeros((), kind=torch.long), loss=zeros(()), groups=zeros(2), bad=zeros(3, kind=torch.long),
-            needed=zeros(types, kind=torch.long), most=zeros(types, 3, kind=torch.long))
+            field_std=zeros(()), found_inf=zeros((), kind=torch.float32), loss=zeros(()), groups=zeros(2),
+            bad=zeros(3, kind=torch.long), most=zeros(types, 3, kind=torch.long), **self._counters(layout))
+
+    def _counters(self, layout: StaticLayout) -> dict:
+        """The capacity, needed and skipped tensors, one set for every slot (each recording writes the same
+        memory, so one read covers them all)."""
+        names = tuple(layout.edges)
+        if self._shared is None or self._shared["names"] != names:
+            device = self.device
+            self._shared = {"names": names,
+                            "capacity": torch.tensor(list(layout.edges.values()), dtype=torch.long, device=device),
+                            "needed": torch.zeros(len(names), dtype=torch.long, device=device),
+                            "skipped": torch.zeros((), dtype=torch.long, device=device)}
+        return {k: v for k, v in self._shared.items() if k != "names"}
 
     def prepare(self, batch: TrajectoryBatch, train: bool = True) -> WindowBuffers:
-        """Copy `batch` into the buffers (allocated anew for another layout; capacities measured on the
-        first batch and grown when one needs more, `read_capacities`), with this step's imputation draws and field std."""
+        """Copy `batch` into the buffers of its shape (a slot per bucketed shape, `SLOTS` kept, each with its
+        recording; edge capacities measured on the first batch and grown when one needs more,
+        `read_capacities`), with this step's imputation draws and field std."""
         model, B = self.model, batch.num_graphs
         layout = self._layout(batch)
-        fresh = layout != self.layout or self.steps != batch.num_steps or self.buffers is None \
-            or self.buffers.edges.size(1) < batch.edges.size(1)
-        if fresh:
-            if any(c == 0 for c in layout.edges.values()):  # the first layout: capacities from this batch's states
-                layout = layout.grown(measure_pairs(batch, model.connectivity, layout), self.margin)
-            self.layout, self.steps, self._graph = layout, batch.num_steps, None
-            self.buffers = self._allocate(batch, layout)
+        if any(c == 0 for c in layout.edges.values()):  # the first batch: capacities from its states and the
+            # statistics pass's graphs (more batches than one; `GraphSimulator.statistics_edges`)
+            needed = measure_pairs(batch, model.connectivity, layout)
+            for edge_type in needed:
+                seen = model.statistics_edges.get(edge_type, 0.0) * B
+                needed[edge_type] = max(needed[edge_type], int(math.ceil(seen)))
+            layout = layout.grown(needed, self.margin)
+        key = self._shape_key(layout, batch)
+        if key not in self._slots:
+            if len(self._slots) >= self.SLOTS:
+                self._slots.pop(next(iter(self._slots)))
+            with torch.inference_mode(False):
+                self._slots[key] = [layout, self._allocate(batch, layout), None, None]
+        slot = self._slots[key]
+        slot[0] = layout  # the current capacities (a slot's recording is dropped when they grow)
+        self.layout, self.steps, self.buffers, self._slot = layout, batch.num_steps, slot[1], slot
         b = self.buffers
         N, n = b.rest.size(0), batch.rest.size(0)
         for buffer, value, pad in ((b.rest, batch.rest, 0), (b.fixed, batch.fixed, True),
@@ -244,12 +278,7 @@ class StaticTrainStep:
             b.collider_batch[:k].copy_(batch.collider_batch)
             b.collider_batch[k:].fill_(B)
         if b.points is not None:
-            b.points.zero_()
-            b.point_batch.fill_(B)
-            for t in range(batch.num_steps):
-                p = batch.point_range(t)[-1]
-                b.points[t, :p].copy_(batch.points[t])
-                b.point_batch[t, :p].copy_(batch.point_batch[t])
+            fill_clouds(batch, b.points, b.point_batch)
             if train:  # the eager step's draws, from the host's generator in the same order
                 use = host_side(torch.rand(B) < model.hparams.point_probability)
             else:
@@ -277,35 +306,56 @@ class StaticTrainStep:
             optimizer.zero_grad(set_to_none=True)
             self.train_function(b, optimizer)
         else:
-            if self._graph is None or self._optimizer is not optimizer:
-                self._record(optimizer)
-            self._graph.replay()
+            key = (recording_key(self.model, self.device), id(optimizer), normalizer_masks(self.model))
+            if self._slot[2] is None or self._slot[3] != key:
+                self._slot[2], self._slot[3] = self._record(optimizer), key
+            self._slot[2].replay()
         self.record_checks()
         return b.loss
 
-    def _record(self, optimizer) -> None:
-        """Warm up on a side stream (optimizer state and lazy initializations outside the capture), then
-        record forward, backward and the optimizer step (PyTorch's whole-network capture)."""
+    def _record(self, optimizer) -> torch.cuda.CUDAGraph:
+        """Warm up on a side stream (optimizer state and lazy initializations outside the capture; the
+        warm-up's updates skipped through `found_inf`, the random state restored), then record forward,
+        backward and the optimizer step (PyTorch's whole-network capture), autocast's cache off."""
         b = self.buffers
         for group in optimizer.param_groups:
-            if not (group.get("fused") or group.get("capturable")):
-                raise ValueError("a captured training step needs a fused or capturable optimizer (the simulators' "
-                                 "configure_optimizers gives a fused Adam)")
-            if not isinstance(group["lr"], Tensor):  # a float would be recorded as a constant: the schedule's
-                group["lr"] = torch.tensor(group["lr"], dtype=torch.float32, device=self.device)  # fill_ reaches it
-        side = torch.cuda.Stream(self.device)
-        side.wait_stream(torch.cuda.current_stream(self.device))
-        with torch.cuda.stream(side):
-            for _ in range(3):
-                optimizer.zero_grad(set_to_none=True)
+            if not group.get("fused"):
+                raise ValueError("a captured training step needs a fused Adam (its found_inf skips a step that "
+                                 "dropped edges); the simulators' configure_optimizers gives one")
+            group["capturable"] = True  # Adam.step refuses a capture otherwise; the fused kernel does not read it
+            lr = group["lr"]
+            if not (isinstance(lr, Tensor) and lr.device == self.device):  # a float is recorded as a constant;
+                # a tensor on the device is what the schedule's fill_ reaches (a resumed one comes back on the CPU)
+                group["lr"] = torch.tensor(float(lr), dtype=torch.float32, device=self.device)
+        cast = torch.autocast("cuda", enabled=torch.is_autocast_enabled("cuda"),
+                              dtype=torch.get_autocast_dtype("cuda"), cache_enabled=False)
+        with torch.cuda.device(self.device):
+            rng = torch.cuda.get_rng_state(self.device)
+            side = torch.cuda.Stream(self.device)
+            side.wait_stream(torch.cuda.current_stream(self.device))
+            with torch.cuda.stream(side), cast:
+                for _ in range(3):
+                    optimizer.zero_grad(set_to_none=True)
+                    self.train_function(b, optimizer, apply=False)
+            torch.cuda.current_stream(self.device).wait_stream(side)
+            torch.cuda.set_rng_state(rng, self.device)
+            graph = torch.cuda.CUDAGraph()
+            optimizer.zero_grad(set_to_none=True)
+            with torch.cuda.graph(graph, capture_error_mode="thread_local"), cast:
                 self.train_function(b, optimizer)
-        torch.cuda.current_stream(self.device).wait_stream(side)
-        graph = torch.cuda.CUDAGraph()
-        optimizer.zero_grad(set_to_none=True)
-        with torch.cuda.graph(graph, capture_error_mode="thread_local"):
-            self.train_function(b, optimizer)
-        self._graph, self._optimizer = graph, optimizer
         self.recordings += 1
+        return graph
+
+    def set_capacities(self, edges: dict) -> None:
+        """Set the edge capacities {queried edge type: pairs} (every recording made anew); they still grow when
+        a step needs more (for tests and experiments)."""
+        self.layout = StaticLayout(self.layout.num_graphs, self.layout.nodes, self.layout.spans, dict(edges))
+        self._shared["capacity"].copy_(torch.tensor(list(self.layout.edges.values()), dtype=torch.long))
+        for slot in self._slots.values():
+            slot[0], slot[2] = self.layout, None
+
+    def __deepcopy__(self, memo):
+        return None  # a copied model records its own step (a CUDA graph cannot be copied)
 
     def record_checks(self) -> None:
         """This step's checks into the model's deferred checks (tensor operations, no read)."""
@@ -330,7 +380,8 @@ class StaticTrainStep:
         if any(needed[t] > c for t, c in self.layout.edges.items()):
             self.layout = self.layout.grown(needed, self.margin)
             b.capacity.copy_(torch.tensor(list(self.layout.edges.values()), dtype=torch.long))
-            self._graph = None
+            for slot in self._slots.values():  # every recording has the old capacities in its shapes
+                slot[0], slot[2] = self.layout, None
         if skipped:
             warnings.warn(f"static training: {skipped} step(s) since the last read needed more edges than the buffers "
                           f"held and were skipped; edge capacities now {self.layout.edges}", stacklevel=2)

@@ -104,10 +104,8 @@ class StaticTrainStep:
     def loss_function(self, b: WindowBuffers, train: bool = True) -> Tensor:
         """The window's loss on the buffers (module docstring); writes the loss, groups and checks into them."""
         model, layout, B = self.model, self.layout, self.layout.num_graphs
-        d = b.positions.size(-1)
         free = b.weight[:, None]
         owner = b.mesh_batch.clamp(max=B - 1)
-        total = b.weight.sum() * d
         burn_in = self.steps - 1 - model.backprop_steps if model.backprop_steps else 0
         state, losses, samples, most, needed = None, [], [], [], []
         first_bad = torch.full((3,), -1, dtype=torch.long, device=b.positions.device)
@@ -135,18 +133,11 @@ class StaticTrainStep:
                     _, state = model.predict_normalized(graph, state)
                 continue
             out, state = model.predict_normalized(graph, state)
-            target = model.target_normalizer(b.positions[t + 1] - pos)
-            squared = torch.where(free > 0, (out - target).square(), 0.0)
-            losses.append(squared.sum() / total)
-            error = squared.sum(1) / d
-            samples.append(torch.zeros(B + 1, dtype=error.dtype, device=error.device).index_add_(
-                0, b.mesh_batch, error)[:B] * b.inv_free)
-            bad = ~torch.isfinite(squared).all(dim=1) & (b.weight > 0)
-            node = bad.to(torch.uint8).argmax().view(1)
-            graph_of = b.mesh_batch.index_select(0, node)
-            row = torch.cat([graph_of, node - (b.mesh_batch < graph_of).sum().view(1),
-                             torch.full((1,), t, dtype=torch.long, device=node.device)])
-            first_bad = torch.where((first_bad[0] < 0) & bad.any(), row, first_bad)
+            with phase("loss"):
+                loss_t, sample, first_bad = self._transition_loss(
+                    b, out, model.target_normalizer(b.positions[t + 1] - pos), t, first_bad)
+            losses.append(loss_t)
+            samples.append(sample)
         loss = torch.stack(losses).mean() if len(losses) > 1 else losses[0]
         per_sample = torch.stack(samples)  # [transitions, B]
         seen = (b.use.to(per_sample.dtype) if b.use is not None else per_sample.new_zeros(B))[None].expand_as(per_sample)
@@ -165,23 +156,42 @@ class StaticTrainStep:
                 b.most.copy_(table.gather(0, worst[None, :, None].expand(1, -1, 3))[0])
         return loss
 
+    def _transition_loss(self, b: WindowBuffers, out: Tensor, target: Tensor, t: int,
+                         first_bad: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Transition t's loss (the normalized MSE on the free nodes), its per-graph mean error [B], and the
+        (trajectory, node, transition) of the first non-finite error so far, updated."""
+        B, d = self.layout.num_graphs, out.size(1)
+        squared = torch.where(b.weight[:, None] > 0, (out - target).square(), 0.0)
+        loss = squared.sum() / (b.weight.sum() * d)
+        error = squared.sum(1) / d
+        sample = torch.zeros(B + 1, dtype=error.dtype, device=error.device).index_add_(
+            0, b.mesh_batch, error)[:B] * b.inv_free
+        bad = ~torch.isfinite(squared).all(dim=1) & (b.weight > 0)
+        node = bad.to(torch.uint8).argmax().view(1)
+        graph_of = b.mesh_batch.index_select(0, node)
+        row = torch.cat([graph_of, node - (b.mesh_batch < graph_of).sum().view(1),
+                         torch.full((1,), t, dtype=torch.long, device=node.device)])
+        return loss, sample, torch.where((first_bad[0] < 0) & bad.any(), row, first_bad)
+
     def train_function(self, b: WindowBuffers, optimizer, apply: bool = True) -> None:
         """Forward, backward and the optimizer step (skipped when edges were dropped: `found_inf`; always
         skipped when not `apply`, the warm-up of a recording)."""
         loss = self.loss_function(b, train=True)
-        loss.backward()
-        if apply:
-            b.skipped.add_(b.found_inf.long())
-        else:
-            b.found_inf.fill_(1.0)
-        fused = optimizer.defaults.get("fused")
-        if fused:  # the fused Adam skips a step whose found_inf is 1 (read on the device)
-            optimizer.found_inf = b.found_inf
-        try:
-            optimizer.step()
-        finally:
-            if fused:
-                del optimizer.found_inf
+        with phase("backward"):
+            loss.backward()
+        with phase("optimizer"):
+            if apply:
+                b.skipped.add_(b.found_inf.long())
+            else:
+                b.found_inf.fill_(1.0)
+            fused = optimizer.defaults.get("fused")
+            if fused:  # the fused Adam skips a step whose found_inf is 1 (read on the device)
+                optimizer.found_inf = b.found_inf
+            try:
+                optimizer.step()
+            finally:
+                if fused:
+                    del optimizer.found_inf
 
     # ---- preparation ----------------------------------------------------------------------------------
     def _layout(self, batch: TrajectoryBatch) -> StaticLayout:

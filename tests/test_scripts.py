@@ -46,19 +46,19 @@ def test_a_failing_ab_probe_is_reported_and_the_other_probes_still_run(tmp_path,
     from ggns.bench.ab import ProbesFailed, bench_ab, raw_from_log, summarize
 
     with pytest.raises(ProbesFailed, match="2 of 4 probe runs failed.*'nonsense 1 2' on baseline"):
-        bench_ab(str(ROOT), ("import json", "nonsense 1 2"), rounds=1, candidate=str(ROOT), output=str(tmp_path))
+        bench_ab(str(ROOT), ("import ggns.config", "nonsense 1 2"), rounds=1, candidate=str(ROOT), output=str(tmp_path))
     raw = list(csv.DictReader((tmp_path / "ab_raw.csv").open()))
     assert [(r["probe"], r["tree"], bool(r["error"])) for r in raw] == [
-        ("import json", "baseline", False), ("import json", "candidate", False),
+        ("import ggns.config", "baseline", False), ("import ggns.config", "candidate", False),
         ("nonsense 1 2", "baseline", True), ("nonsense 1 2", "candidate", True)]
     assert all(r["error"].splitlines()[-1] == "KeyError: 'nonsense'" for r in raw[2:])
     summary = (tmp_path / "ab_summary.md").read_text()
-    assert "| `import json` | ms |" in summary and "| `nonsense 1 2` |" not in summary
+    assert "| `import ggns.config` | ms |" in summary and "| `nonsense 1 2` |" not in summary
     assert "Failed: 2 of 4 probe runs" in summary and "- `nonsense 1 2` on candidate, round 1:" in summary
     assert summary.count("KeyError: 'nonsense'") == 2
     logged = raw_from_log(capsys.readouterr().out)
     assert [r.get("error") for r in logged] == [None, None, "KeyError: 'nonsense'", "KeyError: 'nonsense'"]
-    assert [row["probe"] for row in summarize(logged)] == ["import json"]
+    assert [row["probe"] for row in summarize(logged)] == ["import ggns.config"]
 
 
 GPU_STEPS = ["environment", "packages", "torch_cluster", "plate_small", "tests", "profile_static", "profile", "ab",

@@ -192,7 +192,7 @@ def test_the_static_step_reads_nothing_and_a_read_added_to_it_is_seen(trajs, val
     assert sum(n for (_, _, name), n in reads.counts.items() if name == "radius") == 5
 
 
-@pytest.mark.parametrize("cls", [GGNS, MGNM, GGNSLSTM], ids=lambda c: c.__name__)
+@pytest.mark.parametrize("cls", [GGNS, MGNM], ids=lambda c: c.__name__)  # both processors
 def test_the_whole_static_rollout_step_compiles_as_one_graph(cls, trajs, val_batch):
     """fullgraph=True fails on any graph break, dynamic=False on any data-dependent shape; the eager backend
     traces what inductor would compile without its compile time."""
@@ -250,10 +250,10 @@ def windows(trajs, model, count: int) -> list[TrajectoryBatch]:
     return [collate([data[(3 * i + j) % len(data)] for j in range(2 + i % 2)]) for i in range(count)]
 
 
-@pytest.mark.parametrize("cls, optimizer, steps", [(GGNS, "adam", 50), (GGNSLSTM, "adam", 12), (MGNM, "sgd", 50)],
+@pytest.mark.parametrize("cls, optimizer, steps", [(GGNS, "adam", 50), (GGNSLSTM, "adam", 8), (MGNM, "sgd", 50)],
                          ids=["GGNS", "GGNSLSTM", "MGNM"])
 def test_fifty_static_training_steps_equal_the_eager_ones(cls, optimizer, steps, trajs):
-    """Losses and weights of 50 steps (GGNS+LSTM: 12 windows of 5 transitions), batches of two sizes (two
+    """Losses and weights of 50 steps (GGNS+LSTM: 8 windows of 5 transitions), batches of two sizes (two
     layouts), no noise (the eager step draws it on fewer rows). MGN's per-type MLPs of an edge type absent from a batch get no gradient in the eager step
     and a zero one in the static step, which Adam's momentum still moves: compared under SGD."""
     model = make(cls, noise={"std": 0.0})
@@ -277,7 +277,7 @@ def test_fifty_static_training_steps_equal_the_eager_ones(cls, optimizer, steps,
 
 
 def test_the_static_training_step_reads_nothing_and_compiles_with_its_backward(trajs):
-    model = make(GGNS)
+    model = make(GGNS, latent=8, blocks=1)  # the smallest program that has every part (compile time grows with it)
     batches = windows(trajs, model, 3)
     model.fit_normalizers(batches[:1])
     optimizer = model.configure_optimizers()["optimizer"]

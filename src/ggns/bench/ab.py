@@ -157,7 +157,8 @@ def summarize(raw: list[dict]) -> list[dict]:
     for probe in dict.fromkeys(r["probe"] for r in raw):
         mine = [r for r in raw if r["probe"] == probe and not r.get("error")]  # failed runs: failures_markdown
         value = {(r["round"], r["tree"]): r["value"] for r in mine}
-        rounds = sorted(k for k in {r["round"] for r in mine} if (k, "baseline") in value and (k, "candidate") in value)
+        # rounds measured on both trees, with values a ratio can take (a log's 2 decimals may round one to 0)
+        rounds = sorted(k for k in {r["round"] for r in mine} if value.get((k, "baseline")) and value.get((k, "candidate")))
         if not rounds:
             continue
         unit = mine[0]["unit"]

@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from ..batch import TrajectoryBatch
-from ..evaluation.capture import normalizer_masks, recording_key
+from ..evaluation.capture import normalizer_masks, recording_key, same_objects
 from ..graphs.static import StaticLayout, fill_clouds, measure_pairs, queried_types, static_graph
 from ..phases import host_side, phase
 from .training_noise import smooth_field
@@ -96,7 +96,8 @@ class StaticTrainStep:
         self.steps: int | None = None  # T of the windows
         self.buffers: WindowBuffers | None = None
         self.recordings, self.skipped, self._slot = 0, 0, None
-        self._slots: dict = {}  # shape key -> [layout, buffers, recording, key of the recording]
+        # shape key -> [layout, buffers, recording, its key, the normalizer masks it read]
+        self._slots: dict = {}
         self._shared: dict | None = None  # the counters every slot's buffers share (`_allocate`)
         self.last_use: Tensor | None = None  # the host's imputation draws of the last prepared batch
 
@@ -259,7 +260,7 @@ class StaticTrainStep:
             if len(self._slots) >= self.SLOTS:
                 self._slots.pop(next(iter(self._slots)))
             with torch.inference_mode(False):
-                self._slots[key] = [layout, self._allocate(batch, layout), None, None]
+                self._slots[key] = [layout, self._allocate(batch, layout), None, None, None]
         slot = self._slots[key]
         slot[0] = layout  # the current capacities (a slot's recording is dropped when they grow)
         self.layout, self.steps, self.buffers, self._slot = layout, batch.num_steps, slot[1], slot
@@ -316,10 +317,11 @@ class StaticTrainStep:
             optimizer.zero_grad(set_to_none=True)
             self.train_function(b, optimizer)
         else:
-            key = (recording_key(self.model, self.device), id(optimizer), normalizer_masks(self.model))
-            if self._slot[2] is None or self._slot[3] != key:
-                self._slot[2], self._slot[3] = self._record(optimizer), key
-            self._slot[2].replay()
+            slot, key = self._slot, (recording_key(self.model, self.device), id(optimizer))
+            if slot[2] is None or slot[3] != key or not same_objects(slot[4], normalizer_masks(self.model)):
+                slot[2], slot[3] = self._record(optimizer), key
+                slot[4] = normalizer_masks(self.model)  # after the warm-up made them
+            slot[2].replay()
         self.record_checks()
         return b.loss
 

@@ -1,4 +1,4 @@
-"""In-memory against streamed splits (issue 39, docs/streaming.md): peak resident memory and training speed.
+"""In-memory against streamed splits (docs/streaming.md): peak resident memory and training speed.
 
 Each case runs in a fresh process (`--case`), so that `resource.getrusage(RUSAGE_SELF).ru_maxrss` is that
 case's peak alone: a Lightning fit of `--steps` steps of a small GGNS on the dataset's train split (batches of

@@ -1,4 +1,4 @@
-"""The bad-input matrix (issue 23, docs/robustness.md): every entry point that reads a dataset, given
+"""The bad-input matrix (docs/robustness.md): every entry point that reads a dataset, given
 each kind of bad split file, ends with one line `error: ...` that names the problem and exit status 2
 (no traceback), and the files already written stay as they were; valid but unusual data (an empty
 point cloud at a step, a point cloud far from the mesh) roll out without error. Real HDF5 files made

@@ -346,7 +346,7 @@ def first_seeded_run(cli_data, tmp_path_factory):
 
 @pytest.mark.parametrize("workers", [0, 2])
 def test_the_same_seed_gives_bit_identical_weights_and_test_metrics(cli_data, tmp_path, workers, first_seeded_run):
-    """Determinism on the CPU (issue 23): a fit + test with seed 0 twice (the first shared by both cases),
+    """Determinism on the CPU (docs/robustness.md): a fit + test with seed 0 twice (the first shared by both cases),
     the second with `workers` data-loader processes, gives the same checkpoint weights and test metrics
     bit for bit (the sampler and the training noise run in the main process; workers only read windows)."""
     (first_weights, first_metrics) = first_seeded_run

@@ -1,4 +1,4 @@
-"""Beyond one process (issue 23): Lightning DDP on the CPU (gloo, 2 real processes launched by
+"""Beyond one process (docs/robustness.md): Lightning DDP on the CPU (gloo, 2 real processes launched by
 `python -m ggns fit --trainer.strategy ddp --trainer.devices 2`). Each rank trains on its own share of
 every batch of windows (`EpochSampler`), the normalizer's statistics are merged across the ranks,
 and the logged loss is the ranks' mean, so 2 processes with batches of B train as 1 process with
@@ -110,7 +110,7 @@ def test_two_ddp_processes_train_as_one_with_twice_the_batch(cli_data, tmp_path)
 
 
 def test_streamed_two_ddp_processes_train_as_one_with_twice_the_batch(cli_data, tmp_path):
-    """The same through the streaming reader (issue 39, every split streamed: a budget of 1 byte) with 2 lanes
+    """The same through the streaming reader (every split streamed: a budget of 1 byte) with 2 lanes
     in both runs: each process reads only its lane's trajectories, and the 2 processes' batches together are
     the one process's, so the weights and losses are again those of one process."""
     streamed = ("--data.memory_budget", "1", "--data.stream_lanes", "2")

@@ -1,4 +1,4 @@
-"""Fault injection with real processes and real signals (issue 23; each `python -m ggns` command a process of
+"""Fault injection with real processes and real signals (docs/robustness.md; each `python -m ggns` command a process of
 its own, forked from a server that imported ggns once, tests/forked.py): a generator killed with SIGKILL
 at seeded points resumes, on the same command, to a split whose arrays are bit for bit those of an
 uninterrupted run; what the killed run left (finished parts, a writer's temporary file, a part

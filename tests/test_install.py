@@ -63,7 +63,7 @@ def test_the_wheel_works_from_a_folder_outside_the_checkout(fresh_env, tmp_path)
     assert str(fresh_env) in where.splitlines()[0] and where.splitlines()[1] == "True", where
     listed = _run([str(bin_ / "ggns"), "pretrained", "list"], cwd=tmp_path)
     assert "plate/ggns" in listed and "tissue/ggns" in listed
-    # the commands of a first session, from tmp_path, in one process (each start-up costs seconds)
+    # a new user's first commands, from tmp_path, in one process (each start-up costs seconds)
     script = r"""
 import sys
 from ggns.__main__ import main

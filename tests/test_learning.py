@@ -235,7 +235,7 @@ def test_every_variant_of_the_tissue_learning_files_parses(name, tmp_path):
 
 @pytest.mark.parametrize("name", ["plate_cpu_reach", "plate_cpu_reach_mgn"])
 def test_every_variant_of_the_plate_reach_learning_files_parses(name, tmp_path):
-    """Issue 24's plate learning files: each variant builds through the Lightning CLI with its class
+    """The point-cloud work's plate learning files: each variant builds through the Lightning CLI with its class
     switch (GGNSID, MGN(M)) and settings (per-type processor, blocks, latent, the field's decay)."""
     from ggns.cli import build_cli
     from ggns.models.simulators import GGNSID, MGNM
@@ -255,7 +255,7 @@ def test_every_variant_of_the_plate_reach_learning_files_parses(name, tmp_path):
 
 
 def test_every_variant_of_the_plate_lstm_learning_file_parses(tmp_path):
-    """Issue 24's GGNS+LSTM budget file: each variant builds a per-type GGNS+LSTM with its window, batch
+    """The point-cloud work's GGNS+LSTM budget file: each variant builds a per-type GGNS+LSTM with its window, batch
     and truncated backpropagation (nothing trained)."""
     from ggns.cli import build_cli
     from ggns.models.simulators import GGNSLSTM
@@ -272,7 +272,7 @@ def test_every_variant_of_the_plate_lstm_learning_file_parses(tmp_path):
 
 
 def test_every_variant_of_the_plate_m10_learning_file_parses(tmp_path):
-    """Issue 24's m+10 file: per-type GGNSID with the field on point-cloud samples only and other
+    """The point-cloud work's m+10 file: per-type GGNSID with the field on point-cloud samples only and other
     imputation probabilities (nothing trained)."""
     from ggns.cli import build_cli
     from ggns.models.simulators import GGNSID
@@ -288,7 +288,7 @@ def test_every_variant_of_the_plate_m10_learning_file_parses(tmp_path):
 
 
 def test_every_variant_of_the_estimator_learning_files_parses(tmp_path):
-    """Issue 24's estimator files: the presets' GGNSIDs (plate: the points-only field) with and without
+    """The point-cloud work's estimator files: the presets' GGNSIDs (plate: the points-only field) with and without
     the estimator's own noise (nothing trained)."""
     from ggns.cli import build_cli
     from ggns.models.simulators import GGNSID

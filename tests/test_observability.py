@@ -151,7 +151,7 @@ def test_bad_visibility_inputs_name_the_problem(two_tets):
         error_shares(pred, true, rest, TWO_TETS, fixed, points=points, point_offsets=offsets, radius=0.0)
 
 
-# ---- 2D (issue 24): the outline against the interior, on a 2x2-cell square of 8 triangles ----------------------
+# ---- 2D: the outline against the interior, on a 2x2-cell square of 8 triangles ----------------------
 SQUARE_REST = np.array([[x, y] for y in (0.0, 0.5, 1.0) for x in (0.0, 0.5, 1.0)])  # node 3 * row + column
 SQUARE = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [3, 4, 7], [3, 7, 6], [4, 5, 8], [4, 8, 7]])
 CENTRE, BOTTOM_MIDDLE, CORNER = 4, 1, 0

@@ -74,7 +74,7 @@ def test_batch_layout(trajs, batch):
 def test_true_displacement_reproduces_ground_truth(batch):
     calls = []
 
-    def step_fn(graph, state):  # a step counter, as the test brief prescribes
+    def step_fn(graph, state):  # a step counter, as the step-function contract prescribes
         t = len(calls)
         calls.append(t)
         return batch.positions[t + 1] - batch.positions[t], state

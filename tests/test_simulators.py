@@ -456,7 +456,7 @@ def test_noise_field_on_point_cloud_samples_only_and_its_linear_decay(trajs, tin
 
 
 def test_ggns_id_reads_the_material_from_points_only_and_never_from_the_label(val_batch, tiny_data_dir, tmp_path):
-    """GGNSID (issue 24): the training graphs carry the label (teacher forcing) and its estimator's
+    """GGNSID: the training graphs carry the label (teacher forcing) and its estimator's
     Gaussian NLL joins the loss on samples with points; a rollout's graphs carry no label, so changing the
     batch's materials changes nothing, while blind steps keep the prior (the training labels' mean) and
     point clouds move the estimate. Survives a checkpoint round trip and runs in the rollout engine."""

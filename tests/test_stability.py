@@ -1,4 +1,4 @@
-"""Stability at the extremes (issue 23, `ggns.bench.stability`): long rollouts at and beyond the
+"""Stability at the extremes (`ggns.bench.stability`): long rollouts at and beyond the
 training materials with the smallest and largest colliders, float32 against float64, on plate_tiny
 (T = 8 pushed, then held) with small untrained simulators: every rollout is recorded, and one that
 diverges is kept up to the step before and reported, not returned as garbage."""

@@ -1,4 +1,4 @@
-"""Splits read in pieces (issue 39, `ggns.data.stream`, the data module's `memory_budget`), on real HDF5
+"""Splits read in pieces (`ggns.data.stream`, the data module's `memory_budget`), on real HDF5
 files of the plate_tiny scene (8 training trajectories of 8 states, made once per module, as a whole
 split file and as 3 shard files): the streamed windows are the in-memory ones, their order is
 reproducible and resumable, each process reads only its share, the cache stays within its budget,

@@ -1,4 +1,4 @@
-"""GGNSID's material estimate along rollouts under point-cloud schedules (issue 24, the k=5 question):
+"""GGNSID's material estimate along rollouts under point-cloud schedules (the k=5 question):
 python experiments/material_estimator/material_trace.py CHECKPOINT [--dataset plate --data-dir DIR --split test --trajectories 27 --schedules 1,5]
 
 Rolls the checkpoint out one step at a time from S_0 under "a point cloud every k steps" for each k and

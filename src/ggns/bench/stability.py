@@ -1,4 +1,4 @@
-"""Stability at the extremes (issue 23, `python -m ggns bench stability`): trained simulators rolled
+"""Stability at the extremes (`python -m ggns bench stability`): trained simulators rolled
 out far beyond their training horizon, at and beyond their training materials, with the smallest
 and the largest collider, with and without point clouds, in float32 and in float64.
 

@@ -21,7 +21,7 @@ checked (holds=None), never as holding. The checks are our reading of the paper'
 shows each of them): every model's one-step MSE at most 0.2x that of predicting no motion (the
 `static` baseline row's `one_step_mse`, computed on the same test trajectories); GGNS's rollout
 MSE falling as point clouds come more often, k=1 < k=2 < k=5 < k=10 < never; GGNS k=1 at least
-10x below MGN; and issue 24's two (the paper's plate shows them: 11x and 3.7x): GGNS k=1 at least
+10x below MGN; and the point-cloud work's two (the paper's plate shows them: 11x and 3.7x): GGNS k=1 at least
 3x below MGN(M), told the material, and GGNS's m+10 MSE below MGN(M)'s, scored at S_{m+10} (`m10_mse`)
 and, sixth, pooled over every step of each rollout as the paper's text describes it and the authors'
 code computed it (`m10_pooled_mse`).
@@ -115,7 +115,7 @@ def _lstm_finding(table: Table, ks) -> Finding:
 
 ONE_STEP_RATIO_TARGET = 0.2
 RATIO_TARGET = 10.0
-MATERIAL_RATIO_TARGET = 3.0  # issue 24: GGNS k=1 below MGN(M), which is told the material
+MATERIAL_RATIO_TARGET = 3.0  # point-cloud work: GGNS k=1 below MGN(M), which is told the material
 BASELINE_MODELS = ("static", "alpha_shapes")  # rows of the table that are not learned models
 
 

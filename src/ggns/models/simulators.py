@@ -577,7 +577,7 @@ class GGNSM(GGNS):
 
 
 class GGNSID(GGNS):
-    """GGNS that identifies the material from its point clouds (issue 24; not a model of the paper).
+    """GGNS that identifies the material from its point clouds (not a model of the paper).
 
     A second, small graph network (`estimator`, on GGNS's graph with the point cloud and without any
     material) reads each state that has a point cloud and says which Poisson's ratio it shows, as a

@@ -95,7 +95,7 @@ def sample_spec(scene: dict, shape_id: int, poissons_ratio: float, rng: np.rando
 def collider_path(scene: dict, spec: PlateSpec) -> tuple[np.ndarray, np.ndarray]:
     """Collider vertices per recorded step [T, K, 2] and segments [K, 2]: `collider.travel` down at a
     constant velocity over `collider.push_steps` steps (default: all T - 1), then held (a long
-    rollout of the same push: issue 23's stability study)."""
+    rollout of the same push: the stability study, docs/experiments/stability.md)."""
     T, col = int(scene["num_steps"]), scene["collider"]
     push = int(col.get("push_steps") or T - 1)
     top_y = scene["bottom_y"] + scene["height"]

@@ -141,7 +141,7 @@ def translated(batch: TrajectoryBatch, shift: torch.Tensor) -> TrajectoryBatch:
 @pytest.mark.parametrize("cls", [GGNS, MGN])
 def test_prediction_is_translation_invariant(cls, trajs, train_windows):
     """In float64, so that the check sees the model and not float32 rounding (which the
-    normalization can amplify; see the xfail test below)."""
+    normalization can amplify)."""
     model = make(cls).double()
     model.fit_normalizers([TrajectoryBatch.from_trajectories(train_windows, dtype=torch.float64)])
     batch = TrajectoryBatch.from_trajectories(trajs["val"], dtype=torch.float64)

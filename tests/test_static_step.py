@@ -216,6 +216,17 @@ def test_the_static_step_errors_name_the_step_as_the_eager_ones(trajs, val_batch
         rollout(step, val_batch, EveryK(1), model.connectivity, check_every=4)
 
 
+def test_a_static_rollout_in_inference_mode_leaves_buffers_a_later_rollout_can_use(trajs, val_batch):
+    """Lightning tests in inference mode; a later evaluation of the same model outside it updates the same
+    buffers (inference tensors would refuse that)."""
+    model = fitted(GGNS, trajs).eval()
+    step = StaticStep(model, capture=False)
+    with torch.inference_mode():
+        inside, _ = rollout(step, val_batch, EveryK(2), model.connectivity)
+    outside, _ = rollout(step, val_batch, EveryK(2), model.connectivity)
+    torch.testing.assert_close(outside, inside)
+
+
 def test_the_recorded_step_is_dropped_on_reload_move_and_cast(trajs):
     model = fitted(GGNS, trajs).eval()
     model.static_rollouts = True
@@ -286,6 +297,10 @@ def test_the_static_training_step_reads_nothing_and_compiles_with_its_backward(t
     with phases.recording(), gpu_code_paths(), reads:
         step.step(batches[2], optimizer)  # the same size: prepare, forward, backward, Adam, the checks recorded
     assert dict(reads.counts) == {}
+    eager = HostReads()  # the counter, in the same harness, sees the eager step's reads
+    with phases.recording(), gpu_code_paths(), eager:
+        model.window_loss(batches[2]).backward()
+    assert {name for _, _, name in eager.counts} == {"radius"}
     buffers = step.prepare(batches[2])
     expected = step.loss_function(buffers, train=False)
     compiled = torch.compile(step.loss_function, fullgraph=True, dynamic=False, backend="aot_eager")

@@ -28,7 +28,7 @@ the step's buffers.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -37,7 +37,7 @@ from torch import Tensor
 from ..batch import TrajectoryBatch
 from ..phases import phase
 from ..graphs.build import NeighbourCheck
-from ..graphs.static import StaticLayout, fill_clouds, measure_pairs, queried_types, static_graph
+from ..graphs.static import StaticLayout, batch_layout, fill_clouds, measure_pairs, static_graph
 from .rollout import ESCAPE_FACTOR, check_interval, raise_divergence
 from .schedules import Schedule
 
@@ -93,23 +93,6 @@ class StepBuffers:
     overflow_at: Tensor  # 0-d long: the first step where an edge capacity was too small, -1 if none
     needed: Tensor  # [types] long: the most pairs each queried edge type needed since the last read
     capacity: Tensor  # [types] long: the layout's edge capacities
-
-
-def layout_for(model, batch: TrajectoryBatch, edges: dict | None = None) -> StaticLayout:
-    """The static layout of `batch` for `model` (host numbers only): node rows and the largest graph of
-    each node type from the batch's host offsets, edge capacities `edges` (or none yet)."""
-    B, nodes, spans = batch.num_graphs, {"mesh": batch.rest.size(0)}, {}
-    spans["mesh"] = max(b - a for a, b in zip(batch.node_offsets, batch.node_offsets[1:]))
-    if batch.collider is not None:
-        nodes["collider"] = batch.collider.size(1)
-        offsets = batch.collider_range
-        spans["collider"] = max(1, max(b - a for a, b in zip(offsets, offsets[1:])))
-    if model.uses_points:
-        clouds = [batch.point_range(t) for t in range(batch.num_steps)]
-        nodes["point"] = max(1, max(o[-1] for o in clouds))
-        spans["point"] = max(1, max(b - a for o in clouds for a, b in zip(o, o[1:])))
-    types = queried_types(model.connectivity, nodes)
-    return StaticLayout(B, nodes, spans, {t: (edges or {}).get(t, 0) for t in types})
 
 
 class StaticStep:
@@ -189,8 +172,10 @@ class StaticStep:
         """The buffers for `batch`'s shape (a slot per shape, `SLOTS` kept, each with its recording), its
         trajectories copied in; the layout from its host offsets, with edge capacities measured on its true
         states (one read, per batch) and never shrunk."""
-        layout = layout_for(self.model, batch, self.layout.edges if self.layout is not None else None)
-        layout = layout.grown(measure_pairs(batch, self.model.connectivity, layout), self.margin)
+        model = self.model
+        layout = batch_layout(batch, model.connectivity, model.uses_points,
+                              self.layout.edges if self.layout is not None else None)
+        layout = layout.grown(measure_pairs(batch, model.connectivity, layout), self.margin)
         key = (layout.num_graphs, tuple(layout.nodes.items()), tuple(layout.spans.items()), tuple(layout.edges),
                tuple(batch.positions.shape), batch.edges.size(1), self.model.recurrent)
         if key not in self._slots:
@@ -198,21 +183,22 @@ class StaticStep:
                 self._slots.pop(next(iter(self._slots)))
             with torch.inference_mode(False):  # buffers that a later rollout outside inference mode may update
                 self._slots[key] = [layout, self._allocate(batch, layout), None, None, None]
-        slot = self._slots[key]
-        if slot[0].edges != layout.edges:  # recorded with smaller capacities
-            slot[2] = None
-        slot[0] = layout
-        self.layout, self.buffers, self._slot = layout, slot[1], slot
-        self.buffers.capacity.copy_(torch.tensor(list(layout.edges.values()), dtype=torch.long))
+        self._slot, self.buffers = self._slots[key], self._slots[key][1]
+        self._use_layout(layout)
         self._fill(batch)
         self._batch = batch
+
+    def _use_layout(self, layout: StaticLayout) -> None:
+        """Make `layout` the current slot's (its recording dropped when the edge capacities changed)."""
+        if self._slot[0].edges != layout.edges:
+            self._slot[2] = None
+        self._slot[0] = self.layout = layout
+        self.buffers.capacity.copy_(layout.capacity_tensor())
 
     def set_capacities(self, edges: dict) -> None:
         """Set the edge capacities {queried edge type: pairs} of the current batch (recorded anew); they still
         grow when a step needs more (for tests and experiments)."""
-        self.layout = StaticLayout(self.layout.num_graphs, self.layout.nodes, self.layout.spans, dict(edges))
-        self._slot[0], self._slot[2] = self.layout, None
-        self.buffers.capacity.copy_(torch.tensor(list(self.layout.edges.values()), dtype=torch.long))
+        self._use_layout(replace(self.layout, edges=dict(edges)))
 
     def _allocate(self, batch: TrajectoryBatch, layout: StaticLayout) -> StepBuffers:
         T, N, d = batch.positions.shape
@@ -237,7 +223,7 @@ class StaticStep:
             hidden=(zeros(N, latent), zeros(N, latent)) if self.model.recurrent else None,
             diverged_at=scalar(-1), cap_at=scalar(-1), cap_table=zeros(types, 3, kind=torch.long),
             overflow_at=scalar(-1), needed=zeros(types, kind=torch.long),
-            capacity=torch.tensor(list(layout.edges.values()), dtype=torch.long, device=device))
+            capacity=layout.capacity_tensor(device))
 
     def _fill(self, batch: TrajectoryBatch) -> None:
         """Copy `batch` into the buffers (device copies; the point clouds padded with rows of graph B)."""
@@ -389,9 +375,7 @@ class StaticStep:
         failures = [s for s in (diverged, capped) if s >= 0]
         if overflow >= 0 and not (failures and min(failures) < overflow):
             # the steps from the overflow on ran on graphs missing edges: grow, take them again
-            self.layout = self.layout.grown(needed, self.margin)
-            self._slot[0], self._slot[2] = self.layout, None
-            b.capacity.copy_(torch.tensor(list(self.layout.edges.values()), dtype=torch.long))
+            self._use_layout(self.layout.grown(needed, self.margin))
             return True
         if diverged >= 0:  # as the eager rollout: a divergence first, then the neighbour cap
             raise_divergence(b.out[diverged + 1], b.origin, float(b.extent), batch, diverged)

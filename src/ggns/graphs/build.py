@@ -41,6 +41,25 @@ def relative_features(pos_src: Tensor, pos_dst: Tensor, edge_index: Tensor) -> T
     return torch.cat([rel, rel.norm(dim=1, keepdim=True)], dim=1)
 
 
+def flipped_features(features: Tensor) -> Tensor:
+    """`relative_features` of the flipped pairs: the opposite vector, the same norm."""
+    return torch.cat([-features[:, :-1], features[:, -1:]], dim=1)
+
+
+def mesh_edge_features(pos: Tensor, rest: Tensor, mesh_edges: Tensor) -> Tensor:
+    """MESH_EDGE's features [Em, 2(d + 1)]: relative features of the current and of the rest positions."""
+    return torch.cat([relative_features(pos, pos, mesh_edges), relative_features(rest, rest, mesh_edges)], dim=1)
+
+
+def mesh_node_features(fixed: Tensor, dtype: torch.dtype, material: Tensor | None = None,
+                       owner: Tensor | None = None) -> Tensor:
+    """mesh.x [N, F]: the fixed flag, and with `material` [B] the Poisson ratio of each node's graph `owner` [N]."""
+    x = fixed.to(dtype)[:, None]
+    if material is None:
+        return x
+    return torch.cat([x, material.to(dtype)[owner, None]], dim=1)
+
+
 def build_graph(
     mesh_pos: Tensor,
     mesh_rest: Tensor,
@@ -137,10 +156,9 @@ def node_graph(mesh_pos: Tensor, fixed: Tensor, mesh_batch: Tensor, num_graphs: 
     `collider` and `point` when they have nodes (module docstring for the features)."""
     data = HeteroData()
     data.num_graphs = num_graphs
-    x = fixed.to(mesh_pos.dtype)[:, None]
     if material is not None:
         _check_shape("material", material, (num_graphs,))
-        x = torch.cat([x, material.to(mesh_pos.dtype)[mesh_batch, None]], dim=1)
+    x = mesh_node_features(fixed, mesh_pos.dtype, material, mesh_batch)
     data["mesh"].pos, data["mesh"].x, data["mesh"].batch = mesh_pos, x, mesh_batch
     if collider_pos is not None and collider_pos.size(0) > 0:
         if collider_next is None or collider_batch is None:
@@ -160,11 +178,8 @@ def add_mesh_edges(data: HeteroData, mesh_edges: Tensor, mesh_rest: Tensor) -> H
     """Adds MESH_EDGE (directed mesh edges [2, Em]) with its features from the current and the rest
     positions [N, d], when there are any."""
     if mesh_edges.size(1) > 0:
-        pos = data["mesh"].pos
         data[MESH_EDGE].edge_index = mesh_edges
-        data[MESH_EDGE].edge_attr = torch.cat(
-            [relative_features(pos, pos, mesh_edges), relative_features(mesh_rest, mesh_rest, mesh_edges)], dim=1
-        )
+        data[MESH_EDGE].edge_attr = mesh_edge_features(data["mesh"].pos, mesh_rest, mesh_edges)
     return data
 
 
@@ -228,8 +243,8 @@ def add_radius_edges(data: HeteroData, edge_type: tuple[str, str, str], radius: 
             data[et].edge_index = index
             if features is None:
                 features = relative_features(data[et[0]].pos, data[et[2]].pos, index)
-            else:  # the flipped pairs: the opposite vector, the same norm
-                features = torch.cat([-features[:, :-1], features[:, -1:]], dim=1)
+            else:
+                features = flipped_features(features)
             data[et].edge_attr = features
     most, at = torch.cat(counts).max(dim=0)  # no indexing by a device scalar: that would read it back
     side = (at >= counts[0].size(0)).long()

@@ -57,16 +57,16 @@ def graph_starts(batch: Tensor, num_graphs: int) -> Tensor:
     return torch.searchsorted(batch, torch.arange(num_graphs + 2, device=batch.device, dtype=batch.dtype))
 
 
-def candidates(batch_x: Tensor, batch_y: Tensor, num_graphs: int, span: int) -> tuple[Tensor, Tensor]:
-    """(candidate source rows [M, span], valid [M, span]): for each query row of `batch_y`, the rows of
-    `batch_x` of its graph (a contiguous run), padded to `span`; a padding query has none."""
-    starts = graph_starts(batch_x, num_graphs)
+def candidates(starts: Tensor, batch_y: Tensor, num_graphs: int, span: int, rows_x: int) -> tuple[Tensor, Tensor]:
+    """(candidate source rows [M, span], valid [M, span]): for each query row of `batch_y`, the rows of x of
+    its graph (a contiguous run, from x's `graph_starts`), padded to `span`; a padding query has none.
+    rows_x: x's row count."""
     graph = batch_y.clamp(max=num_graphs)  # padding queries look at the empty run [end, end)
     first, last = starts[graph], starts[graph + 1]
     last = torch.where(batch_y < num_graphs, last, first)
     cand = first[:, None] + torch.arange(span, device=batch_y.device)
     valid = cand < last[:, None]
-    return cand.clamp(max=max(batch_x.size(0) - 1, 0)), valid
+    return cand.clamp(max=max(rows_x - 1, 0)), valid
 
 
 def _tiles(rows: int, span: int) -> list[slice]:
@@ -81,7 +81,7 @@ def static_radius(x: Tensor, y: Tensor, r: float, batch_x: Tensor, batch_y: Tens
     nearest first when more are within r. span: a capacity >= the row count of the largest graph of x.
     exclude_self: x is y and a node is not its own neighbour. exclude: pairs [2, E] (source row in x,
     query row in y) that are not neighbours whatever their distance (MGN's world edges leave the mesh
-    edges out); they do not count toward `count` either."""
+    edges out); within the radius they still count toward `count`, as the eager builder counts them."""
     if span < 1 or cap < 1:
         raise ValueError(f"need span >= 1 and cap >= 1, got {span}, {cap}")
     ny = y.size(0)
@@ -89,10 +89,10 @@ def static_radius(x: Tensor, y: Tensor, r: float, batch_x: Tensor, batch_y: Tens
     if x.size(0) == 0 or ny == 0:
         empty = torch.zeros(ny, width, dtype=torch.long, device=y.device)
         return Neighbours(empty, empty.bool(), torch.zeros(ny, dtype=torch.long, device=y.device))
-    starts = graph_starts(batch_x, num_graphs) if exclude is not None else None
+    starts = graph_starts(batch_x, num_graphs)
     index, mask, count = [], [], []
     for rows in _tiles(ny, span):
-        cand, valid = candidates(batch_x, batch_y[rows], num_graphs, span)
+        cand, valid = candidates(starts, batch_y[rows], num_graphs, span, x.size(0))
         d2 = (x[cand] - y[rows, None]).square().sum(-1)
         within = valid & (d2 < r * r)
         if exclude_self:
@@ -168,9 +168,8 @@ def radius(x: Tensor, y: Tensor, r: float, batch_x: Tensor, batch_y: Tensor, max
     if _use_cluster(search, y.device):
         return torch_cluster.radius(x, y, r, batch_x, batch_y, max_num_neighbors=max_num_neighbors,
                                     batch_size=num_graphs)
-    found = static_radius(x, y, r, batch_x, batch_y, num_graphs, max_num_neighbors, largest_graph(batch_x, num_graphs))
-    edges, _, needed = compact(found, int(found.mask.sum()))
-    return edges[:, :int(needed)].flip(0)
+    return _pairs(static_radius(x, y, r, batch_x, batch_y, num_graphs, max_num_neighbors,
+                                largest_graph(batch_x, num_graphs)))
 
 
 def knn(x: Tensor, y: Tensor, k: int, batch_x: Tensor | None = None, batch_y: Tensor | None = None,
@@ -182,9 +181,12 @@ def knn(x: Tensor, y: Tensor, k: int, batch_x: Tensor | None = None, batch_y: Te
     bx = torch.zeros(x.size(0), dtype=torch.long, device=x.device) if batch_x is None else batch_x
     by = torch.zeros(y.size(0), dtype=torch.long, device=y.device) if batch_y is None else batch_y
     graphs = int(torch.maximum(bx.max(), by.max())) + 1 if bx.numel() and by.numel() else 1
-    found = static_knn(x, y, k, bx, by, graphs, largest_graph(bx, graphs))
-    edges, _, needed = compact(found, int(found.mask.sum()))
-    return edges[:, :int(needed)].flip(0)
+    return _pairs(static_knn(x, y, k, bx, by, graphs, largest_graph(bx, graphs)))
+
+
+def _pairs(found: Neighbours) -> Tensor:
+    """The found pairs as torch-cluster gives them, [2, E] (row 0: query, row 1: source), E read once."""
+    return compact(found, int(found.mask.sum()))[0].flip(0)
 
 
 SEARCHES = ("auto", "cluster", "static")

@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from ..phases import phase
-from .build import relative_features
+from .build import flipped_features, mesh_edge_features, mesh_node_features, relative_features
 from .connectivity import Connectivity
 from .search import compact, static_radius
 from .types import EDGE_TYPES, MESH_EDGE, WORLD_EDGE
@@ -99,11 +99,34 @@ class StaticLayout:
     spans: dict = field(hash=False)
     edges: dict = field(hash=False)
 
+    def capacity_tensor(self, device=None) -> Tensor:
+        """The edge capacities as a long tensor [types] (what a step compares its needed pairs with)."""
+        return torch.tensor(list(self.edges.values()), dtype=torch.long, device=device)
+
     def grown(self, needed: dict[EdgeType, int], margin: float = 1.25) -> StaticLayout:
         """The layout with every edge capacity that `needed` exceeds grown to hold it with a margin."""
         edges = {t: max(c, round_up(needed.get(t, 0), margin)) if needed.get(t, 0) > c else c
                  for t, c in self.edges.items()}
         return replace(self, edges=edges)
+
+
+def batch_layout(batch, connectivity: Connectivity, uses_points: bool, edges: dict | None = None,
+                 size=lambda n: n) -> StaticLayout:
+    """The static layout of `batch` (a `TrajectoryBatch`; host numbers only): node rows and the largest graph
+    of each node type from its host offsets, each passed through `size` (the rollouts' exact counts, the
+    training's buckets), and the edge capacities `edges` of the queried types (0 for a type not in it)."""
+    def largest(offsets) -> int:
+        return max(1, max(b - a for a, b in zip(offsets, offsets[1:])))
+
+    nodes, spans = {"mesh": size(batch.rest.size(0))}, {"mesh": size(largest(batch.node_offsets))}
+    if batch.collider is not None:
+        nodes["collider"], spans["collider"] = size(batch.collider.size(1)), size(largest(batch.collider_range))
+    if uses_points:
+        clouds = [batch.point_range(t) for t in range(batch.num_steps)]
+        nodes["point"] = size(max(1, max(o[-1] for o in clouds)))
+        spans["point"] = size(max(largest(o) for o in clouds))
+    types = queried_types(connectivity, nodes)
+    return StaticLayout(batch.num_graphs, nodes, spans, {t: (edges or {}).get(t, 0) for t in types})
 
 
 def queried_types(connectivity: Connectivity, node_types) -> list[EdgeType]:
@@ -153,9 +176,7 @@ def _static_graph(layout, connectivity, mesh_pos, mesh_rest, mesh_edges, fixed, 
                   collider_next, collider_batch, points, point_batch, use_points, material, mesh_edge_mask):
     B = layout.num_graphs
     graph = TensorGraph(B)
-    x = fixed.to(mesh_pos.dtype)[:, None]
-    if material is not None:
-        x = torch.cat([x, material.to(mesh_pos.dtype)[mesh_batch.clamp(max=B - 1), None]], dim=1)
+    x = mesh_node_features(fixed, mesh_pos.dtype, material, mesh_batch.clamp(max=B - 1))
     nodes = {"mesh": (mesh_pos, mesh_batch)}
     graph.add("mesh", x=x, pos=mesh_pos, batch=mesh_batch)
     if "collider" in layout.nodes:
@@ -164,8 +185,7 @@ def _static_graph(layout, connectivity, mesh_pos, mesh_rest, mesh_edges, fixed, 
     if "point" in layout.nodes:
         graph.add("point", x=points.new_zeros(points.size(0), 0), pos=points, batch=point_batch)
         nodes["point"] = (points, point_batch)
-    mesh_features = torch.cat([relative_features(mesh_pos, mesh_pos, mesh_edges),
-                               relative_features(mesh_rest, mesh_rest, mesh_edges)], dim=1)
+    mesh_features = mesh_edge_features(mesh_pos, mesh_rest, mesh_edges)
     if mesh_edge_mask is None:
         graph.add(MESH_EDGE, edge_index=mesh_edges, edge_attr=mesh_features)
     else:
@@ -189,7 +209,7 @@ def _static_graph(layout, connectivity, mesh_pos, mesh_rest, mesh_edges, fixed, 
         query_most, query_at = found.count.max(dim=0)
         if src != dst:
             graph.add((dst, edge_type[1], src), edge_index=index.flip(0),
-                      edge_attr=torch.cat([-features[:, :-1], features[:, -1:]], dim=1), edge_mask=mask)
+                      edge_attr=flipped_features(features), edge_mask=mask)
             per_source = torch.zeros(x_pos.size(0), dtype=torch.long, device=x_pos.device).index_add_(
                 0, index[0], mask.long())
             source_most, source_at = per_source.max(dim=0)

@@ -396,16 +396,16 @@ class GraphSimulator(pl.LightningModule):
         optimizer = self.optimizers()
         step = self.static_train_step()
         optimizer._on_before_step()
-        loss = step.step(batch, optimizer.optimizer)
+        loss = step.step(batch, optimizer.optimizer).clone()  # the step's buffer: the next step overwrites it
         optimizer._on_after_step()
         scheduler = self.lr_schedulers()
         if scheduler is not None:
             scheduler.step()
-        sync = self._world_size() > 1
-        self.log("train/loss", loss, batch_size=batch.num_graphs, sync_dist=sync)
+        self.log("train/loss", loss, batch_size=batch.num_graphs)  # one process (`StaticTraining` refuses DDP)
         use = step.last_use
-        for name, value, present in (("points", step.buffers.groups[0], use is not None and bool(use.any())),
-                                     ("no_points", step.buffers.groups[1], use is None or not bool(use.all()))):
+        groups = step.buffers.groups.clone()
+        for name, value, present in (("points", groups[0], use is not None and bool(use.any())),
+                                     ("no_points", groups[1], use is None or not bool(use.all()))):
             if present:
                 self.log(f"train/loss_{name}", value, batch_size=batch.num_graphs)
         return loss

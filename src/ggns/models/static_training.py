@@ -34,7 +34,7 @@ from torch import Tensor
 
 from ..batch import TrajectoryBatch
 from ..evaluation.capture import normalizer_masks, recording_key, same_objects
-from ..graphs.static import StaticLayout, fill_clouds, measure_pairs, queried_types, static_graph
+from ..graphs.static import StaticLayout, batch_layout, fill_clouds, measure_pairs, static_graph
 from ..phases import host_side, phase
 from .training_noise import smooth_field
 
@@ -195,21 +195,6 @@ class StaticTrainStep:
                     del optimizer.found_inf
 
     # ---- preparation ----------------------------------------------------------------------------------
-    def _layout(self, batch: TrajectoryBatch) -> StaticLayout:
-        """The bucketed layout of `batch`, keeping the edge capacities of the current one (never shrunk)."""
-        B, nodes, spans = batch.num_graphs, {"mesh": bucket(batch.rest.size(0))}, {}
-        spans["mesh"] = bucket(max(b - a for a, b in zip(batch.node_offsets, batch.node_offsets[1:])))
-        if batch.collider is not None:
-            nodes["collider"] = bucket(batch.collider.size(1))
-            spans["collider"] = bucket(max(b - a for a, b in zip(batch.collider_range, batch.collider_range[1:])))
-        if self.model.uses_points:
-            clouds = [batch.point_range(t) for t in range(batch.num_steps)]
-            nodes["point"] = bucket(max(1, max(o[-1] for o in clouds)))
-            spans["point"] = bucket(max(1, max(b - a for o in clouds for a, b in zip(o, o[1:]))))
-        old = self.layout.edges if self.layout is not None else {}
-        edges = {t: old.get(t, 0) for t in queried_types(self.model.connectivity, nodes)}
-        return StaticLayout(B, nodes, spans, edges)
-
     def _shape_key(self, layout: StaticLayout, batch: TrajectoryBatch) -> tuple:
         return (layout.num_graphs, tuple(layout.nodes.items()), tuple(layout.spans.items()), tuple(layout.edges),
                 batch.num_steps, bucket(batch.edges.size(1)))
@@ -237,7 +222,7 @@ class StaticTrainStep:
         if self._shared is None or self._shared["names"] != names:
             device = self.device
             self._shared = {"names": names,
-                            "capacity": torch.tensor(list(layout.edges.values()), dtype=torch.long, device=device),
+                            "capacity": layout.capacity_tensor(device),
                             "needed": torch.zeros(len(names), dtype=torch.long, device=device),
                             "skipped": torch.zeros((), dtype=torch.long, device=device)}
         return {k: v for k, v in self._shared.items() if k != "names"}
@@ -247,7 +232,8 @@ class StaticTrainStep:
         recording; edge capacities measured on the first batch and grown when one needs more,
         `read_capacities`), with this step's imputation draws and field std."""
         model, B = self.model, batch.num_graphs
-        layout = self._layout(batch)
+        layout = batch_layout(batch, model.connectivity, model.uses_points,
+                              self.layout.edges if self.layout is not None else None, size=bucket)
         if any(c == 0 for c in layout.edges.values()):  # the first batch: capacities from its states and the
             # statistics pass's graphs (more batches than one; `GraphSimulator.statistics_edges`)
             needed = measure_pairs(batch, model.connectivity, layout)
@@ -361,10 +347,14 @@ class StaticTrainStep:
     def set_capacities(self, edges: dict) -> None:
         """Set the edge capacities {queried edge type: pairs} (every recording made anew); they still grow when
         a step needs more (for tests and experiments)."""
-        self.layout = StaticLayout(self.layout.num_graphs, self.layout.nodes, self.layout.spans, dict(edges))
-        self._shared["capacity"].copy_(torch.tensor(list(self.layout.edges.values()), dtype=torch.long))
+        self._grow_to(replace(self.layout, edges=dict(edges)))
+
+    def _grow_to(self, layout: StaticLayout) -> None:
+        """New edge capacities for every slot (every recording has the old ones in its shapes)."""
+        self.layout = layout
+        self._shared["capacity"].copy_(layout.capacity_tensor())
         for slot in self._slots.values():
-            slot[0], slot[2] = self.layout, None
+            slot[0], slot[2] = layout, None
 
     def __deepcopy__(self, memo):
         return None  # a copied model records its own step (a CUDA graph cannot be copied)
@@ -390,10 +380,7 @@ class StaticTrainStep:
         b.skipped.zero_()
         self.skipped += skipped
         if any(needed[t] > c for t, c in self.layout.edges.items()):
-            self.layout = self.layout.grown(needed, self.margin)
-            b.capacity.copy_(torch.tensor(list(self.layout.edges.values()), dtype=torch.long))
-            for slot in self._slots.values():  # every recording has the old capacities in its shapes
-                slot[0], slot[2] = self.layout, None
+            self._grow_to(self.layout.grown(needed, self.margin))
         if skipped:
             warnings.warn(f"static training: {skipped} step(s) since the last read needed more edges than the buffers "
                           f"held and were skipped; edge capacities now {self.layout.edges}", stacklevel=2)

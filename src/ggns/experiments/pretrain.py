@@ -9,6 +9,7 @@ writes the manifest that `ggns.pretrained` checks on every load.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -43,7 +44,8 @@ def load_spec(path: str | Path = SPEC) -> dict:
 
 
 def entry_run(name: str, spec: dict) -> tuple[Run, int, list[str]]:
-    """(the sweep run, its task index, the sweep overrides) that trains entry `name`."""
+    """(the sweep run, its task index, the sweep overrides) that trains entry `name`; the entry's
+    `overrides` (a mapping of dotted Lightning CLI keys, e.g. `trainer.max_time`) go after the sweep's."""
     if name not in spec["entries"]:
         raise ValueError(f"no pretrained entry {name!r} in {SPEC}; entries: {', '.join(spec['entries'])}")
     entry, task = spec["entries"][name], name.split("/")[0]
@@ -52,7 +54,9 @@ def entry_run(name: str, spec: dict) -> tuple[Run, int, list[str]]:
     index = next((i for i, r in enumerate(runs) if r.model == entry["model"]), None)
     if index is None:
         raise ValueError(f"sweep {entry['sweep']!r} has no model {entry['model']!r}")
-    return runs[index], index, overrides
+    run = runs[index]
+    extra = tuple(part for key, value in (entry.get("overrides") or {}).items() for part in (f"--{key}", str(value)))
+    return dataclasses.replace(run, args=run.args + extra), index, overrides
 
 
 def train_command(name: str, spec: dict, resume: bool = False) -> list[str]:

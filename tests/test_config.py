@@ -52,3 +52,73 @@ def test_experiment_presets_are_found_by_name_after_the_shipped_ones_and_no_name
     assert not list(CONF_DIR.glob("*/plate_cpu_partition.yaml"))  # not shipped in the package
     with pytest.raises(FileNotFoundError, match="experiments.*known: .*plate_cpu_partition"):
         resolve_preset("plate_cpu_partitio", "sweeps")
+
+
+@pytest.mark.parametrize("kind", ["data", "sweeps", "learning", "demo", "bench", None])
+def test_every_kind_of_file_extends_its_base_the_same_way(kind, tmp_path):
+    """`base:` (ggns.config.base_chain): a file beside this one, or a shipped file of the same kind by name
+    (None: a Lightning config); a chain of bases outermost first; a missing base, a cycle and the former
+    `extends:` are errors naming the file."""
+    from ggns.config import base_chain, config_file, preset_files
+
+    shipped = config_file("trainer") if kind is None else preset_files(kind)[0]
+    (tmp_path / "a.yaml").write_text(f"base: {'trainer' if kind is None else shipped.stem}\n")
+    (tmp_path / "b.yaml").write_text("base: a.yaml\n")
+    chain = base_chain(tmp_path / "b.yaml", kind)
+    assert chain[-3:] == [shipped, tmp_path / "a.yaml", tmp_path / "b.yaml"], chain
+    (tmp_path / "lost.yaml").write_text("base: nowhere.yaml\n")
+    with pytest.raises(ValueError, match=r"lost\.yaml: its base 'nowhere\.yaml' is neither a file beside it nor a"):
+        base_chain(tmp_path / "lost.yaml", kind)
+    (tmp_path / "c.yaml").write_text("base: d.yaml\n")
+    (tmp_path / "d.yaml").write_text("base: c.yaml\n")
+    with pytest.raises(ValueError, match=r"d\.yaml: its base 'c\.yaml' makes a cycle of bases \(.*c\.yaml -> .*d\.yaml -> .*c\.yaml\)"):
+        base_chain(tmp_path / "c.yaml", kind)
+    (tmp_path / "old.yaml").write_text("extends: a.yaml\n")
+    with pytest.raises(ValueError, match=r"old\.yaml: `extends:` is now `base:`"):
+        base_chain(tmp_path / "old.yaml", kind)
+
+
+def test_a_layered_file_merges_mappings_and_replaces_the_named_keys_whole(tmp_path):
+    from ggns.config import load_layered
+
+    (tmp_path / "a.yaml").write_text("x: {p: 1, q: 2}\nv: {one: {}, two: {}}\nn: 1\n")
+    (tmp_path / "b.yaml").write_text("base: a.yaml\nx: {q: 3}\nv: {three: {}}\n")
+    assert load_layered(tmp_path / "b.yaml", "learning") == {"x": {"p": 1, "q": 3}, "v": {"one": {}, "two": {}, "three": {}},
+                                                            "n": 1}
+    assert load_layered(tmp_path / "b.yaml", "learning", replace=("v",))["v"] == {"three": {}}
+    # a data preset (check=True) over a shipped one by name: only keys the base has
+    (tmp_path / "tiny.yaml").write_text("base: plate_tiny\nscene: {num_steps: 6}\n")
+    assert load_config(tmp_path / "tiny.yaml")["scene"]["num_steps"] == 6
+    assert load_config(tmp_path / "tiny.yaml")["scene"]["grid_nodes"] == load_config("plate_tiny")["scene"]["grid_nodes"]
+
+
+def test_settings_read_the_same_from_a_mapping_a_file_and_arguments(tmp_path):
+    """`command_line` flattens a mapping of Lightning settings into `--dotted.key value` arguments (lists as
+    JSON, None as null, booleans lowercase, an append list one argument per item); `settings` reads them back
+    from files and arguments alike, a later one winning; `args_mapping` turns the former lists into mappings."""
+    from ggns.config import args_mapping, command_line, merge_overrides, settings
+
+    mapping = {"trainer": {"max_time": "00:00:40:00", "check_val_every_n_epoch": None, "enable_progress_bar": False,
+                           "callbacks+": ["ggns.experiments.clock.TrainingClock"]},
+               "model": {"class_path": "ggns.models.simulators.GGNSID", "init_args": {"lr_schedule": {"lr": 1e-3}}},
+               "evaluation.schedules": ["every:1", "never"], "seed_everything": 1}
+    args = command_line(mapping)
+    assert args == ["--trainer.max_time", "00:00:40:00", "--trainer.check_val_every_n_epoch", "null",
+                    "--trainer.enable_progress_bar", "false", "--trainer.callbacks+", "ggns.experiments.clock.TrainingClock",
+                    "--model.class_path", "ggns.models.simulators.GGNSID", "--model.init_args.lr_schedule.lr", "0.001",
+                    "--evaluation.schedules", '["every:1", "never"]', "--seed_everything", "1"]
+    (tmp_path / "p.yaml").write_text("trainer: {max_time: '00:00:10:00', limit_val_batches: 8}\n"
+                                     "model: {init_args: {lr_schedule: {lr: 1.0e-3}}}\n")
+    (tmp_path / "q.yaml").write_text("trainer: {limit_val_batches: 4}\n")
+    found = settings(args, [tmp_path / "p.yaml", tmp_path / "q.yaml"])
+    assert found["trainer.max_time"] == "00:00:40:00" and found["trainer.limit_val_batches"] == 4  # later wins
+    assert found["model.init_args.lr_schedule.lr"] == 0.001 == settings(["--model.init_args.lr_schedule.lr", "1e-3"])[
+        "model.init_args.lr_schedule.lr"]
+    assert found["trainer.callbacks+"] == ["ggns.experiments.clock.TrainingClock"]
+    assert found["evaluation.schedules"] == ["every:1", "never"] and found["trainer.check_val_every_n_epoch"] is None
+    assert args_mapping(["--trainer.max_time", "00:00:40:00", "--data.batch_size", "8", "--data.batch_size=4",
+                         "--trainer.callbacks+=a.B"]) == {"trainer": {"max_time": "00:00:40:00", "callbacks+": ["a.B"]},
+                                                          "data": {"batch_size": 4}}
+    assert merge_overrides({"model": {"init_args": {"latent": 64, "blocks": 3}}, "trainer": {"callbacks+": ["a.B"]}},
+                           {"model.init_args.blocks": 5, "trainer": {"callbacks+": ["c.D"]}}) == {
+        "model": {"init_args": {"latent": 64, "blocks": 5}}, "trainer": {"callbacks+": ["a.B", "c.D"]}}

@@ -25,8 +25,6 @@ import re
 import sys
 from pathlib import Path
 
-import yaml
-
 from pytorch_lightning import Trainer
 from pytorch_lightning.callbacks import Callback, LearningRateMonitor, ModelCheckpoint
 from pytorch_lightning.cli import LightningCLI, SaveConfigCallback
@@ -34,7 +32,7 @@ from pytorch_lightning.trainer.states import TrainerFn
 from pytorch_lightning.utilities.exceptions import SIGTERMException
 
 from .checkpoints import check_format, read_checkpoint
-from .config import config_file, load_config
+from .config import base_chain, config_file, load_config
 from .data.module import SimulationDataModule
 from .evaluation.callbacks import TestReport
 from .models.random_state import RandomState
@@ -229,27 +227,11 @@ def shipped_configs(args: list[str]) -> list[str]:
 
 def config_bases(path: Path) -> list[Path]:
     """The configs a Lightning config extends, outermost first: its top-level `base:` (a path relative to
-    the config's folder, or a shipped config's name such as `trainer`), that one's base, and so on. The
-    config then applies over them: its keys replace theirs, and `callbacks+:` appends to their callbacks.
-    A missing base or a cycle raises ValueError naming the config."""
-    chain, seen = [], {path.resolve()} if path.is_file() else set()
-    while path.is_file():
-        try:
-            base = (yaml.safe_load(path.read_text()) or {}).get("base")
-        except (yaml.YAMLError, AttributeError):
-            return chain  # not a mapping: the parser names the problem
-        if base is None:
-            break
-        found = path.parent / str(base)
-        found = found if found.is_file() else config_file(str(base))
-        if not found.is_file():
-            raise ValueError(f"{path}: its base {base!r} is neither a file beside it nor a shipped config")
-        if found.resolve() in seen:
-            raise ValueError(f"{path}: its base {base!r} makes a cycle of bases")
-        seen.add(found.resolve())
-        chain.insert(0, found)
-        path = found
-    return chain
+    the config's folder, or a shipped config's name such as `trainer`), that one's base, and so on
+    (`ggns.config.base_chain`, the inheritance of every kind of file). The config then applies over them:
+    its keys replace theirs, and `callbacks+:` appends to their callbacks. A missing base or a cycle
+    raises ValueError naming the config."""
+    return base_chain(path)[:-1] if path.is_file() else []
 
 
 def build_cli(args: list[str] | None = None, run: bool = True) -> LightningCLI:

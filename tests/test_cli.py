@@ -260,12 +260,16 @@ def test_cli_mgn_fit_and_test(cli_data, tmp_path, capsys):
 
 
 def test_configs_extend_their_base(tmp_path):
-    """`base:` in a Lightning config: the shipped model configs extend conf/trainer.yaml (its checkpoints
-    first, then their own `callbacks+:`); a config of one's own extends a file beside it or a shipped
+    """`base:` in a Lightning config: the shipped model configs extend conf/trainer_points.yaml or
+    trainer_mesh.yaml (their _3d versions for the tissue and the cavity), which extend conf/trainer.yaml (its
+    checkpoints first, then their `callbacks+:`); a config of one's own extends a file beside it or a shipped
     config by name; a missing base or a cycle is refused naming the config."""
     from ggns.cli import build_cli, config_bases
 
-    assert config_bases(CONF_DIR / "plate" / "ggns.yaml") == [CONF_DIR / "trainer.yaml"]
+    assert config_bases(CONF_DIR / "plate" / "ggns.yaml") == [CONF_DIR / "trainer.yaml", CONF_DIR / "trainer_points.yaml"]
+    for task, model, tail in (("plate", "mgn_shared", "trainer_mesh"), ("tissue", "ggns_lstm", "trainer_points_3d"),
+                              ("cavity", "mgn_m", "trainer_mesh_3d")):
+        assert config_bases(CONF_DIR / task / f"{model}.yaml") == [CONF_DIR / "trainer.yaml", CONF_DIR / f"{tail}.yaml"]
     cli = build_cli(["--config", "plate/ggns", "--trainer.logger", "false"], run=False)
     names = [type(c).__name__ + (f":{c.filename}" if type(c).__name__ == "ModelCheckpoint" else "")
              for c in cli.trainer.callbacks]
@@ -274,8 +278,8 @@ def test_configs_extend_their_base(tmp_path):
         assert sum(n == wanted for n in names) == 1, (wanted, names)
     (tmp_path / "mine.yaml").write_text("base: plate/mgn\ntrainer:\n  max_epochs: 3\n")
     (tmp_path / "two.yaml").write_text("base: mine.yaml\ndata:\n  batch_size: 4\n")
-    assert config_bases(tmp_path / "two.yaml") == [CONF_DIR / "trainer.yaml", CONF_DIR / "plate" / "mgn.yaml",
-                                                   tmp_path / "mine.yaml"]
+    assert config_bases(tmp_path / "two.yaml") == [CONF_DIR / "trainer.yaml", CONF_DIR / "trainer_mesh.yaml",
+                                                   CONF_DIR / "plate" / "mgn.yaml", tmp_path / "mine.yaml"]
     cli = build_cli(["--config", str(tmp_path / "two.yaml"), "--trainer.logger", "false"], run=False)
     assert (cli.trainer.max_epochs, cli.datamodule.batch_size, type(cli.model).__name__) == (3, 4, "MGN")
     (tmp_path / "gone.yaml").write_text("base: nowhere.yaml\n")

@@ -216,11 +216,11 @@ def tiny_registry(cli_data, tmp_path_factory):
 
     root = tmp_path_factory.mktemp("registry")
     sweep = root / "tiny_sweep.yaml"
-    args = ["--data.dataset", str(cli_data / TINY12), "--data.batch_size", "8", "--trainer.max_epochs", "1",
-            "--trainer.check_val_every_n_epoch", "1",
-            "--trainer.enable_progress_bar", "false", "--model.init_args.latent", "8",
-            "--model.init_args.blocks", "1", "--data.max_eval_trajectories", "2"]
-    models = {name: {"config": str(Path(__file__).resolve().parents[1] / config), "args": args} for name, (config, _) in TINY_MODELS.items()}
+    overrides = {"data": {"dataset": str(cli_data / TINY12), "batch_size": 8, "max_eval_trajectories": 2},
+                 "trainer": {"max_epochs": 1, "check_val_every_n_epoch": 1, "enable_progress_bar": False},
+                 "model": {"init_args": {"latent": 8, "blocks": 1}}}
+    models = {name: {"config": str(Path(__file__).resolve().parents[1] / config), "overrides": overrides}
+              for name, (config, _) in TINY_MODELS.items()}
     import json
     sweep.write_text(json.dumps({"output": str(root / "runs"), "seeds": [0], "models": models}))
     spec = {"output": str(root / "runs"), "test_trajectories": 2,

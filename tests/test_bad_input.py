@@ -204,15 +204,16 @@ def test_sweep_and_bench_learning_pass_on_their_fits_error_line(bad, entry, cli_
     data = tmp_path / "data"
     preset = _bad_copy(cli_data, data, bad)
     before = {p: p.read_bytes() for p in data.iterdir()}
-    args = ["--data.dataset", str(preset), "--data.generate_missing", "false", "--model.init_args.latent", "8",
-            "--model.init_args.blocks", "1", "--trainer.max_steps", "1", "--trainer.enable_progress_bar", "false"]
+    overrides = {"data": {"dataset": str(preset), "generate_missing": False},
+                 "model": {"init_args": {"latent": 8, "blocks": 1}},
+                 "trainer": {"max_steps": 1, "enable_progress_bar": False}}
     config = str(CONF_DIR / "plate" / "mgn.yaml")
     if entry == "sweep":
-        spec = {"output": str(tmp_path / "out"), "seeds": [0], "parallel": 1, "args": args,
+        spec = {"output": str(tmp_path / "out"), "seeds": [0], "parallel": 1, "overrides": overrides,
                 "models": {"mgn": {"config": config}}}
     else:
         spec = {"output": str(tmp_path / "out"), "minutes": 1, "val_every": 1, "seed": 0, "parallel": 1,
-                "base": {"config": config, "args": args}, "variants": {"mgn": []}}
+                "run": {"config": config, "overrides": overrides}, "variants": {"mgn": {}}}
     path = tmp_path / "spec.yaml"
     path.write_text(yaml.safe_dump(spec))
     capsys.readouterr()

@@ -3,10 +3,14 @@ test trajectories, the pictures, GGNS trained from scratch through the Lightning
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 from PIL import Image
 
+import pytest
+
 from ggns import pretrained
+from ggns.config import CONF_DIR
 from ggns.demo import load_demo, run_demo
 
 from conftest import TINY12
@@ -19,14 +23,47 @@ def test_the_shipped_demo_specs_name_shipped_simulators_and_parse():
         assert set(spec["pretrained"].values()) <= set(pretrained.names())
 
 
+def test_the_demo_trains_with_its_profiles_and_overrides(tmp_path):
+    """`train`: the model config, then the CPU profiles stacked after it, the demo's data and validation
+    trajectories, then its overrides (the demo's faster lr schedule), the budget and a progress bar."""
+    from ggns.cli import build_cli
+    from ggns.demo import train_arguments
+
+    spec = load_demo("plate")
+    args = train_arguments(spec, tmp_path, minutes=4)
+    assert [Path(args[i + 1]).resolve() for i, a in enumerate(args) if a == "--config"][1:] == [
+        CONF_DIR / "profiles" / "cpu.yaml", CONF_DIR / "profiles" / "cpu_model.yaml"]
+    cli = build_cli(args, run=False)
+    model, trainer = cli.model, cli.trainer
+    assert (model.hparams.latent, model.hparams.blocks, model.lr_schedule.lr, model.lr_schedule.decay_steps) == (64, 3, 3e-3, 6000)
+    assert (trainer.limit_val_batches, trainer.val_check_interval, trainer.check_val_every_n_epoch) == (4, 400, None)
+    assert cli.datamodule.batch_size == 8 and cli.datamodule.hparams.max_eval_trajectories == 9  # the demo's, over cpu.yaml's 27
+
+
+def test_a_demo_file_extends_a_shipped_one_and_refuses_the_former_args(tmp_path, monkeypatch):
+    from ggns.config import load_layered
+
+    (tmp_path / "mine.yaml").write_text("base: plate\ntrain: {minutes: 1}\n")
+    spec = load_layered(tmp_path / "mine.yaml", "demo")
+    assert spec["train"]["minutes"] == 1 and spec["train"]["config"] == "conf/plate/ggns.yaml"  # the rest: plate's
+    assert spec["data"] == "plate_small"
+    (tmp_path / "demo").mkdir()
+    (tmp_path / "demo" / "plate.yaml").write_text(f"base: {CONF_DIR / 'demo' / 'plate.yaml'}\n"
+                                                  "train: {args: ['--data.batch_size', '4']}\n")
+    monkeypatch.setattr("ggns.config.CONF_DIR", tmp_path)
+    monkeypatch.setattr("ggns.demo.CONF_DIR", tmp_path)
+    with pytest.raises(ValueError, match=r"train: `args`: a list of command-line strings .*\{data: \{batch_size: 4\}\}"):
+        load_demo("plate")
+
+
 def test_the_demo_runs_end_to_end_on_tiny_sizes(tiny_registry, cli_data, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(pretrained, "REGISTRY", tiny_registry[0])
     spec = {**load_demo("plate"), "data": str(cli_data / TINY12), "test_trajectories": 2,
             "pretrained": {"ggns": "tiny/ggns", "mgn": "tiny/mgn", "mgn_m": "tiny/mgn_m"}}
-    spec["train"] = {**spec["train"], "val_trajectories": 2,
-                     "args": ["--data.batch_size", "8", "--model.init_args.latent", "8", "--model.init_args.blocks", "1",
-                              "--trainer.max_epochs", "2", "--trainer.check_val_every_n_epoch", "1",
-                              "--trainer.enable_checkpointing", "true"]}
+    spec["train"] = {**spec["train"], "val_trajectories": 2, "configs": [],
+                     "overrides": {"data": {"batch_size": 8}, "model": {"init_args": {"latent": 8, "blocks": 1}},
+                                   "trainer": {"max_epochs": 2, "check_val_every_n_epoch": 1,
+                                               "enable_checkpointing": True}}}
     report = run_demo("plate", tmp_path, minutes=0.5, spec=spec)
     out = tmp_path / "plate"
     text = report.read_text()

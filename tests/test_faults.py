@@ -305,14 +305,13 @@ def _sweep_file(tmp_path: Path, data: Path) -> Path:
     from conftest import TINY12
     from ggns.config import CONF_DIR
 
-    tiny = ["--data.dataset", str(data / TINY12), "--data.data_dir", str(data), "--data.generate_missing", "false",
-            "--data.batch_size", "8", "--model.init_args.latent", "16", "--model.init_args.blocks", "2",
-            "--trainer.max_epochs", "2", "--trainer.limit_train_batches", "2", "--trainer.limit_val_batches", "1",
-            "--trainer.check_val_every_n_epoch", "2", "--data.max_eval_trajectories", "2",
-            "--trainer.enable_progress_bar", "false",
-            "--trainer.enable_model_summary", "false",
-            "--model.init_args.test_m_plus_10", "false"]  # one test part (never), one process fewer per test
-    sweep = {"output": str(tmp_path / "sweep"), "seeds": [0], "parallel": 1, "args": tiny,
+    tiny = {"data": {"dataset": str(data / TINY12), "data_dir": str(data), "generate_missing": False, "batch_size": 8,
+                     "max_eval_trajectories": 2},
+            "model": {"init_args": {"latent": 16, "blocks": 2,
+                                    "test_m_plus_10": False}},  # one test part (never), one process fewer per test
+            "trainer": {"max_epochs": 2, "limit_train_batches": 2, "limit_val_batches": 1, "check_val_every_n_epoch": 2,
+                        "enable_progress_bar": False, "enable_model_summary": False}}
+    sweep = {"output": str(tmp_path / "sweep"), "seeds": [0], "parallel": 1, "overrides": tiny,
              "models": {"mgn": {"config": str(CONF_DIR / "plate" / "mgn.yaml")}}}
     tmp_path.mkdir(parents=True, exist_ok=True)
     path = tmp_path / "sweep.yaml"

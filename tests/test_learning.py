@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 import sys
 
 import numpy as np
@@ -75,17 +76,19 @@ def test_variant_row_on_hand_made_curves():
 
 
 def write_learning(tmp_path, data_dir) -> str:
-    tiny = ["--data.dataset", str(data_dir / TINY12), "--data.data_dir", str(data_dir),
-            "--data.generate_missing", "false",
-            "--data.batch_size", "8", "--model.init_args.latent", "16", "--model.init_args.blocks", "2",
-            "--trainer.max_steps", "4", "--trainer.limit_val_batches", "1", "--trainer.log_every_n_steps", "1",
-            "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
+    (tmp_path / "tiny.yaml").write_text(  # a config file stacked after each variant's model config
+        "model: {init_args: {latent: 16, blocks: 2}}\n"
+        "trainer: {max_steps: 4, limit_val_batches: 1, log_every_n_steps: 1, enable_model_summary: false}\n")
+    tiny = {"data": {"dataset": str(data_dir / TINY12), "data_dir": str(data_dir), "generate_missing": False,
+                     "batch_size": 8},
+            "trainer": {"enable_progress_bar": False}}
     spec = {"output": str(tmp_path / "learning"), "minutes": 5, "val_every": 2, "seed": 0, "parallel": 2,
-            "base": {"config": str(CONF_DIR / "plate" / "ggns.yaml"), "args": tiny},
-            # the second variant is another model (MGN, its own config) with the base's arguments and its own
-            "variants": {"paper": [], "decay": {"config": str(CONF_DIR / "plate" / "mgn.yaml"),
-                                                "args": ["--model.init_args.lr_schedule.decay_rate", "0.5",
-                                                         "--model.init_args.lr_schedule.decay_steps", "2"]}}}
+            "run": {"config": str(CONF_DIR / "plate" / "ggns.yaml"), "configs": [str(tmp_path / "tiny.yaml")],
+                    "overrides": tiny},
+            # the second variant is another model (MGN, its own config) with the run's files and settings and its own
+            "variants": {"paper": {}, "decay": {"config": str(CONF_DIR / "plate" / "mgn.yaml"),
+                                                "overrides": {"model": {"init_args": {"lr_schedule": {
+                                                    "decay_rate": 0.5, "decay_steps": 2}}}}}}}
     path = tmp_path / "learning.yaml"
     path.write_text(yaml.safe_dump(spec, sort_keys=False))
     return str(path)
@@ -97,7 +100,8 @@ def test_two_tiny_variants_end_to_end_and_resume(cli_data, tmp_path):
     assert [r.model for r in runs] == ["paper", "decay"]
     assert "00:00:05:00" in runs[0].args and runs[1].args[-1] == "2"  # the budget first, the variant last
     assert runs[0].config.endswith("ggns.yaml") and runs[1].config.endswith("mgn.yaml")
-    assert str(cli_data) in runs[1].args  # the base's arguments apply to a variant with its own config
+    assert str(cli_data) in runs[1].args  # the run's settings apply to a variant with its own config
+    assert runs[1].configs == (str(tmp_path / "tiny.yaml"),)  # and so do its files
     messages = []
     report = run_learning(spec, log=messages.append, launch=launch_in_process)
     output = tmp_path / "learning"
@@ -140,10 +144,27 @@ def test_two_tiny_variants_end_to_end_and_resume(cli_data, tmp_path):
     assert sorted(m for m in messages if m.startswith(("skip", "fit"))) == [
         f"skip {r.model}: {r.fit_dir / FINISHED} exists" for r in sorted(runs, key=lambda r: r.model)]
     assert [(r.fit_dir / FINISHED).stat().st_mtime_ns for r in runs] == stamps
-    # a finished variant whose arguments changed is an error, not a silent skip
+    # a finished variant whose arguments changed is an error, not a silent skip; so is a changed config file
     changed = load_learning(write_learning(tmp_path, cli_data), ["val_every=3"])
-    with pytest.raises(ValueError, match="finished with other arguments"):
+    with pytest.raises(ValueError, match="finished with other arguments .*trainer.val_check_interval: 2 then, 3 now"):
         run_learning(changed, only=["paper"])
+    tiny_text = (tmp_path / "tiny.yaml").read_text()
+    (tmp_path / "tiny.yaml").write_text(tiny_text.replace("blocks: 2", "blocks: 3"))
+    with pytest.raises(ValueError, match="model.init_args.blocks: 2 then, 3 now"):
+        run_learning(spec, only=["paper"])
+    (tmp_path / "tiny.yaml").write_text(tiny_text)
+    # a marker written before config files were stacked holds only the arguments: the same settings as
+    # arguments alone (the file's keys among them) are the same fit
+    marker = runs[0].fit_dir / FINISHED
+    done = json.loads(marker.read_text())
+    assert done["configs"] == [str(tmp_path / "tiny.yaml")] and done["settings"]["model.init_args.latent"] == 16
+    inline = [part for key, value in done["settings"].items() for part in (f"--{key}", json.dumps(value).strip('"'))
+              if not key.endswith("+")] + ["--trainer.callbacks+=ggns.experiments.clock.TrainingClock"]
+    marker.write_text(json.dumps({"args": inline}))
+    messages.clear()
+    run_learning(spec, only=["paper"], log=messages.append)
+    assert messages[0] == f"skip paper: {marker} exists"
+    marker.write_text(json.dumps({**done, "args": list(runs[0].args)}))
     # the command line: the report alone
     (output / "learning.md").unlink()
     with pytest.MonkeyPatch.context() as patch:
@@ -151,19 +172,24 @@ def test_two_tiny_variants_end_to_end_and_resume(cli_data, tmp_path):
         main(["bench", "learning", "--config", str(tmp_path / "learning.yaml"), "--report-only"])
     assert (output / "learning.md").read_text() == text
     assert json.loads((runs[0].fit_dir / FINISHED).read_text())["args"] == list(runs[0].args)
+    assert "Run: `--config " in text and f"--config {tmp_path / 'tiny.yaml'}` with `--data.dataset" in text
 
 
 def test_bad_learning_files(tmp_path):
     path = tmp_path / "bad.yaml"
-    good = {"output": "x", "minutes": 1, "val_every": 10, "base": {"config": str(CONF_DIR / "plate" / "mgn.yaml")},
-            "variants": {"a": []}}
-    for change, message in ((dict(variants={}), "at least one"), (dict(variants={"a": "--x"}), "list of CLI"),
-                            (dict(variants={"a": {"args": []}}), "needs `config`"),
-                            (dict(variants={"a": {"config": good["base"]["config"], "arg": []}}), r"unknown keys: \['arg'\]"),
-                            (dict(variants={"a": {"config": "gone.yaml"}}), "variant 'a'.s config gone.yaml not found"),
-                            (dict(variants={"a": {"config": good["base"]["config"], "args": "--x"}}), "list of CLI"),
+    mgn = str(CONF_DIR / "plate" / "mgn.yaml")
+    good = {"output": "x", "minutes": 1, "val_every": 10, "run": {"config": mgn}, "variants": {"a": {}}}
+    for change, message in ((dict(variants={}), "at least one"),
+                            (dict(variants={"a": "--x"}), "variant 'a' must be a mapping"),
+                            (dict(variants={"a": {"config": mgn, "arg": []}}), r"unknown keys: \['arg'\]"),
+                            (dict(variants={"a": {"config": mgn, "model": {}}}), r"\['config', 'model'\]: .* \(not both\)"),
+                            (dict(variants={"a": {"config": "gone.yaml"}}), "variant 'a': its config gone.yaml not found"),
+                            (dict(variants={"a": {"configs": ["gone.yaml"]}}), "variant 'a': config gone.yaml not found"),
+                            (dict(variants={"a": {"overrides": ["--x", "1"]}}), "variant 'a': `overrides`: a list"),
+                            (dict(variants={"a": {"trainers": {"max_epochs": 1}}}), r"unknown keys: \['trainers'\]"),
                             (dict(minutes=0), "minutes"), (dict(val_every=0), "val_every"),
-                            (dict(base={"config": "nope.yaml"}), "nope.yaml")):
+                            (dict(run={"config": "nope.yaml"}), "nope.yaml"),
+                            (dict(run={"config": mgn, "overrides": {"model": 1}, "extra": 1}), r"unknown keys \['extra'\]")):
         path.write_text(yaml.safe_dump({**good, **change}))
         with pytest.raises((ValueError, FileNotFoundError), match=message):
             load_learning(path)
@@ -172,23 +198,85 @@ def test_bad_learning_files(tmp_path):
         run_learning(load_learning(path), only=["b"])
 
 
+def test_the_former_forms_are_refused_naming_the_new_ones(tmp_path):
+    """A variant as a list of command-line strings, `args:` in the run or a variant, `base: {config, args}` and
+    `extends:`: each an error naming the file, the variant and what it is now."""
+    path = tmp_path / "old.yaml"
+    mgn = str(CONF_DIR / "plate" / "mgn.yaml")
+    good = {"output": "x", "minutes": 1, "val_every": 10, "run": {"config": mgn}, "variants": {"a": {}}}
+    for change, message in (
+            (dict(variants={"noise": ["--model.init_args.noise.std", "0.005"]}),
+             re.escape("variant 'noise': a list of command-line strings is the former form; Lightning settings are now "
+                       "a mapping of their keys (noise: {model: {init_args: {noise: {std: 0.005}}}})")),
+            (dict(variants={"b": {"config": mgn, "args": ["--data.batch_size", "4"]}}),
+             re.escape("variant 'b': `args`: a list of command-line strings") + ".*"
+             + re.escape("(overrides: {data: {batch_size: 4}})")),
+            (dict(run={"config": mgn, "args": ["--data.batch_size", "4"]}),
+             re.escape("`run`: `args`: a list of command-line strings") + ".*"
+             + re.escape("(overrides: {data: {batch_size: 4}})")),
+            (dict(run=None, base={"config": mgn, "args": []}),
+             re.escape("`base:` names the one file this one extends") + ".*"
+             + re.escape("now `run: {config, configs, overrides}`")),
+            (dict(extends="plate_ggns"), re.escape("`extends:` is now `base:`"))):
+        path.write_text(yaml.safe_dump({k: v for k, v in {**good, **change}.items() if v is not None}))
+        with pytest.raises(ValueError, match=message) as error:
+            load_learning(path)
+        assert str(error.value).startswith(str(path)), error.value
+
+
+def test_a_variant_in_either_form(tmp_path):
+    """A variant is a mapping of Lightning settings over the run's, or {config, configs, overrides}: its own
+    model config and files (after the run's) and settings; the files stack in order, the settings win."""
+    from ggns.cli import build_cli
+
+    (tmp_path / "small.yaml").write_text("model: {init_args: {latent: 16, blocks: 1}}\ndata: {batch_size: 4}\n")
+    (tmp_path / "smaller.yaml").write_text("data: {batch_size: 2}\n")
+    spec = {"output": str(tmp_path / "out"), "minutes": 1, "val_every": 10,
+            "run": {"config": str(CONF_DIR / "plate" / "ggns.yaml"), "configs": [str(tmp_path / "small.yaml")],
+                    "overrides": {"model": {"init_args": {"noise": {"std": 0.02}}}, "trainer": {"max_steps": 3}}},
+            "variants": {"noise": {"model": {"init_args": {"noise": {"std": 0.005}}}, "trainer.max_steps": 5},
+                         "mgn": {"config": str(CONF_DIR / "plate" / "mgn.yaml"), "configs": [str(tmp_path / "smaller.yaml")],
+                                 "overrides": {"model": {"init_args": {"blocks": 2}}}}}}
+    path = tmp_path / "learning.yaml"
+    path.write_text(yaml.safe_dump(spec, sort_keys=False))
+    noise, mgn = variant_runs(load_learning(path))
+    assert noise.configs == (str(tmp_path / "small.yaml"),) and noise.config == spec["run"]["config"]
+    assert noise.args[-4:] == ("--model.init_args.noise.std", "0.005", "--trainer.max_steps", "5")
+    assert mgn.configs == (str(tmp_path / "small.yaml"), str(tmp_path / "smaller.yaml"))
+    assert mgn.args[-6:] == ("--model.init_args.noise.std", "0.02", "--model.init_args.blocks", "2",
+                             "--trainer.max_steps", "3")
+    for run, (kind, std, blocks, batch, steps) in zip((noise, mgn), (("GGNS", 0.005, 1, 4, 5), ("MGN", 0.02, 2, 2, 3))):
+        cli = build_cli(run.fit_command()[4:], run=False)
+        assert (type(cli.model).__name__, cli.model.noise.std, cli.model.hparams.blocks) == (kind, std, blocks)
+        assert (cli.datamodule.batch_size, cli.trainer.max_steps, cli.model.hparams.latent) == (batch, steps, 16)
+
+
 def test_a_learning_file_extends_another(tmp_path):
-    """`extends`: the parent's keys with the child's on top, the child's variants replacing the parent's;
-    command-line overrides still win; a file that extends itself through its parent is refused."""
+    """`base:`: the parent's keys with the child's on top (mappings merged key by key), the child's variants
+    replacing the parent's; command-line overrides still win; a base by name is a learning preset; a file that
+    extends itself through its parent, and a base that does not exist, are refused naming the file."""
     config = str(CONF_DIR / "plate" / "mgn.yaml")
     parent = {"output": "out", "minutes": 5, "val_every": 10, "seed": 0,
-              "base": {"config": config, "args": ["--a", "1"]}, "variants": {"x": [], "y": ["--b", "2"]}}
+              "run": {"config": config, "overrides": {"data": {"batch_size": 4}}},
+              "variants": {"x": {}, "y": {"model": {"init_args": {"blocks": 2}}}}}
     (tmp_path / "parent.yaml").write_text(yaml.safe_dump(parent))
     (tmp_path / "child.yaml").write_text(yaml.safe_dump(
-        {"extends": str(tmp_path / "parent.yaml"), "seed": 1, "variants": {"z": ["--c", "3"]}}))
+        {"base": "parent.yaml", "seed": 1, "run": {"overrides": {"trainer": {"max_steps": 3}}},
+         "variants": {"z": {"model": {"init_args": {"blocks": 3}}}}}))
     spec = load_learning(tmp_path / "child.yaml", ["minutes=7"])
-    assert "extends" not in spec and spec["seed"] == 1 and spec["minutes"] == 7 and spec["output"] == "out"
-    assert spec["variants"] == {"z": ["--c", "3"]} and spec["base"]["args"] == ["--a", "1"]
-    (tmp_path / "keep.yaml").write_text(yaml.safe_dump({"extends": str(tmp_path / "parent.yaml"), "seed": 2}))
+    assert "base" not in spec and spec["seed"] == 1 and spec["minutes"] == 7 and spec["output"] == "out"
+    assert spec["variants"] == {"z": {"model": {"init_args": {"blocks": 3}}}}
+    assert spec["run"] == {"config": config, "overrides": {"data": {"batch_size": 4}, "trainer": {"max_steps": 3}}}
+    (tmp_path / "keep.yaml").write_text(yaml.safe_dump({"base": str(tmp_path / "parent.yaml"), "seed": 2}))
     assert load_learning(tmp_path / "keep.yaml")["variants"] == parent["variants"]  # none of its own: the parent's
-    (tmp_path / "parent.yaml").write_text(yaml.safe_dump({**parent, "extends": str(tmp_path / "child.yaml")}))
-    with pytest.raises(ValueError, match="round in a circle"):
+    (tmp_path / "named.yaml").write_text(yaml.safe_dump({"base": "plate_ggns", "output": "elsewhere"}))
+    assert "lr_decay" in load_learning(tmp_path / "named.yaml")["variants"]  # conf/learning/plate_ggns.yaml's
+    (tmp_path / "parent.yaml").write_text(yaml.safe_dump({**parent, "base": "child.yaml"}))
+    with pytest.raises(ValueError, match="makes a cycle of bases"):
         load_learning(tmp_path / "child.yaml")
+    (tmp_path / "lost.yaml").write_text(yaml.safe_dump({"base": "nowhere", "seed": 2}))
+    with pytest.raises(ValueError, match=r"lost\.yaml: its base 'nowhere' is neither a file beside it nor a preset"):
+        load_learning(tmp_path / "lost.yaml")
 
 
 def test_the_cavity_depth_companion_runs_the_parents_blocks_8(tmp_path):
@@ -199,6 +287,7 @@ def test_the_cavity_depth_companion_runs_the_parents_blocks_8(tmp_path):
     assert child["blocks_8"].fit_command() == parent["blocks_8"].fit_command()
     assert child["mgn_blocks_8"].config == "conf/cavity/mgn.yaml" and child["mgn_blocks_8"].args[-2:] == (
         "--model.init_args.blocks", "8")
+    assert child["mgn_blocks_8"].configs == parent["blocks_8"].configs  # the run's files apply to a variant's config
 
 
 def test_the_shipped_learning_file_parses(tmp_path):
@@ -209,8 +298,7 @@ def test_the_shipped_learning_file_parses(tmp_path):
     wanted = {"paper", "lr_decay", "noise_0.005", "noise_0.02", "latent64_blocks3", "batch_4", "batch_16"}
     assert wanted <= set(spec["variants"])
     for run in variant_runs(spec):
-        cli = build_cli(["--config", run.config, "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args],
-                        run=False)
+        cli = build_cli(run.fit_command()[4:], run=False)
         assert cli.datamodule.hparams.dataset == "plate_small"
         if run.model == "lr_decay":
             assert cli.model.lr_schedule.decay_rate == 0.1
@@ -226,8 +314,7 @@ def test_every_variant_of_the_tissue_learning_files_parses(name, tmp_path):
     from ggns.cli import build_cli
 
     for run in variant_runs(load_learning(name, [f"output={tmp_path}"])):
-        argv = ["--config", run.config, "--seed_everything", str(run.seed),
-                "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
+        argv = run.fit_command()[4:]  # after `python -m ggns fit`: its config files and settings
         cli = build_cli(argv, run=False)
         assert cli.model.hparams.dim == 3 and cli.model.hparams.connectivity.startswith(f"{task}_")
         assert cli.datamodule.hparams.dataset == f"{task}_cpu"
@@ -241,8 +328,7 @@ def test_every_variant_of_the_plate_reach_learning_files_parses(name, tmp_path):
     from ggns.models.simulators import GGNSID, MGNM
 
     for run in variant_runs(load_learning(name, [f"output={tmp_path}"])):
-        argv = ["--config", run.config, "--seed_everything", str(run.seed),
-                "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
+        argv = run.fit_command()[4:]  # after `python -m ggns fit`: its config files and settings
         model = build_cli(argv, run=False).model
         assert model.hparams.dim == 2 and model.hparams.connectivity.startswith("plate_")
         assert isinstance(model, GGNSID) == ("id" in run.model.split("_"))
@@ -261,8 +347,7 @@ def test_every_variant_of_the_plate_lstm_learning_file_parses(tmp_path):
     from ggns.models.simulators import GGNSLSTM
 
     for run in variant_runs(load_learning("plate_cpu_lstm", [f"output={tmp_path}"])):
-        argv = ["--config", run.config, "--seed_everything", str(run.seed),
-                "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
+        argv = run.fit_command()[4:]  # after `python -m ggns fit`: its config files and settings
         cli = build_cli(argv, run=False)
         model = cli.model
         assert isinstance(model, GGNSLSTM) and model.edge_partition
@@ -278,8 +363,7 @@ def test_every_variant_of_the_plate_m10_learning_file_parses(tmp_path):
     from ggns.models.simulators import GGNSID
 
     for run in variant_runs(load_learning("plate_cpu_m10", [f"output={tmp_path}"])):
-        argv = ["--config", run.config, "--seed_everything", str(run.seed),
-                "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
+        argv = run.fit_command()[4:]  # after `python -m ggns fit`: its config files and settings
         model = build_cli(argv, run=False).model
         assert isinstance(model, GGNSID) and model.edge_partition
         assert model.noise.field_points_only == run.model.startswith("field_points_only")
@@ -295,8 +379,7 @@ def test_every_variant_of_the_estimator_learning_files_parses(tmp_path):
 
     for preset in ("plate_cpu_estimator", "tissue_cpu_estimator"):
         for run in variant_runs(load_learning(preset, [f"output={tmp_path}"])):
-            argv = ["--config", run.config, "--seed_everything", str(run.seed),
-                    "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
+            argv = run.fit_command()[4:]  # after `python -m ggns fit`: its config files and settings
             model = build_cli(argv, run=False).model
             assert isinstance(model, GGNSID) and model.edge_partition
             plate = preset.startswith("plate")

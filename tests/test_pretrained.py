@@ -31,6 +31,20 @@ RTOL = 0.02
 SHIPPED = pretrained.names()
 
 
+def test_an_entry_trains_its_sweep_run_with_its_overrides():
+    """`overrides` of a pretrained entry (a mapping of Lightning settings) go after its sweep run's."""
+    from ggns.experiments.pretrain import entry_run, train_command
+
+    spec = load_spec()
+    run, index, overrides = entry_run("plate/mgn", spec)
+    assert run.model == "mgn" and overrides == ["seeds=[0]", f"output={spec['output']}/plate"]
+    assert run.args[-2:] == ("--trainer.max_time", "00:00:40:00") and "--trainer.max_time" in run.args[:-2]  # the sweep's 12 min first
+    command = train_command("plate/mgn", spec)
+    assert command[:4] == ["python", "-m", "ggns", "fit"]
+    assert [command[i + 1] for i, a in enumerate(command) if a == "--config"] == [
+        "conf/plate/mgn.yaml", "conf/profiles/cpu.yaml", "conf/profiles/cpu_model.yaml"]
+
+
 def test_every_entry_of_the_spec_is_shipped():
     assert SHIPPED == sorted(load_spec()["entries"])
 

@@ -19,13 +19,17 @@ from ggns.experiments.sweep import (Run, baseline_spec, load_sweep, prepare_data
 from conftest import TINY12, launch_in_process
 
 
+def tiny_overrides(data_dir) -> dict:
+    """The Lightning settings of a tiny fit on the plate_tiny data in `data_dir` (2 epochs of 2 batches)."""
+    return {"data": {"dataset": str(data_dir / TINY12), "data_dir": str(data_dir), "generate_missing": False,
+                     "batch_size": 8},
+            "model": {"init_args": {"latent": 16, "blocks": 2}},
+            "trainer": {"max_epochs": 2, "limit_train_batches": 2, "limit_val_batches": 1, "check_val_every_n_epoch": 1,
+                        "enable_progress_bar": False, "enable_model_summary": False}}
+
+
 def write_sweep(tmp_path, data_dir, seeds=(0, 1)) -> str:
-    tiny = ["--data.dataset", str(data_dir / TINY12), "--data.data_dir", str(data_dir), "--data.generate_missing",
-            "false", "--data.batch_size", "8", "--model.init_args.latent", "16", "--model.init_args.blocks", "2",
-            "--trainer.max_epochs", "2", "--trainer.limit_train_batches", "2", "--trainer.limit_val_batches", "1",
-            "--trainer.check_val_every_n_epoch", "1",
-            "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
-    sweep = {"output": str(tmp_path / "sweep"), "seeds": list(seeds), "parallel": 2, "args": tiny,
+    sweep = {"output": str(tmp_path / "sweep"), "seeds": list(seeds), "parallel": 2, "overrides": tiny_overrides(data_dir),
              "models": {"mgn": {"config": str(CONF_DIR / "plate" / "mgn.yaml")}},
              "baselines": {"dataset": str(data_dir / TINY12), "data_dir": str(data_dir), "alpha_shapes": True,
                            "static": True, "initial_mesh": ["mgn"]}}
@@ -222,8 +226,7 @@ def test_every_run_of_every_sweep_preset_parses(preset, tmp_path):
     sweep = load_sweep(preset, [f"output={tmp_path}"])
     baseline_spec(sweep)  # its baselines section, if any, is valid
     for run in {r.model: r for r in runs_of(sweep)}.values():
-        argv = ["--config", run.config, "--seed_everything", str(run.seed),
-                "--trainer.logger.init_args.save_dir", str(tmp_path), *run.args]
+        argv = run.fit_command()[4:]  # after `python -m ggns fit`; the logger's save_dir: the output, tmp_path
         cli = build_cli(argv, run=False)
         scene = cli.datamodule.hparams.dataset.split("_")[0]  # plate_small -> plate, tissue_cpu -> tissue
         assert cli.model.hparams.connectivity.startswith(f"{scene}_")  # the model's graph is the data's scene's
@@ -242,3 +245,87 @@ def test_missing_datasets_are_generated_once_before_parallel_runs(cli_data, tmp_
     messages.clear()
     prepare_datasets(runs, messages.append)
     assert messages == []
+
+
+def test_a_run_stacks_its_config_files_and_flattens_its_overrides(cli_data, tmp_path):
+    """A run's fit: its model's config, the sweep's `configs`, the model's `configs` (a later file wins key by
+    key), then the sweep's `overrides` merged with the model's (the model's win) as `--dotted.key value`
+    arguments, which win over every file; `Run.setting` reads the stack (prepare_datasets' dataset)."""
+    from ggns.cli import build_cli
+
+    (tmp_path / "first.yaml").write_text(f"data: {{dataset: {cli_data / TINY12}, batch_size: 4}}\n"
+                                        "trainer: {max_epochs: 5}\n")
+    (tmp_path / "second.yaml").write_text("data: {batch_size: 2}\nmodel: {init_args: {lr_schedule: {lr: 1.0e-3}}}\n")
+    mgn = str(CONF_DIR / "plate" / "mgn.yaml")
+    sweep = {"output": str(tmp_path / "out"), "seeds": [3], "configs": [str(tmp_path / "first.yaml")],
+             "overrides": {"trainer": {"max_epochs": 6, "check_val_every_n_epoch": None},
+                           "model": {"init_args": {"latent": 16, "noise": {"std": 0.0}}}},
+             "models": {"mgn": {"config": mgn, "configs": [str(tmp_path / "second.yaml")],
+                                "overrides": {"trainer.max_epochs": 7, "model": {"init_args": {"blocks": 1}},
+                                              "data": {"data_dir": str(cli_data)}}}}}
+    path = tmp_path / "sweep.yaml"
+    path.write_text(yaml.safe_dump(sweep, sort_keys=False))
+    (run,) = runs_of(load_sweep(path))
+    assert run.configs == (str(tmp_path / "first.yaml"), str(tmp_path / "second.yaml"))
+    assert list(run.args) == ["--trainer.max_epochs", "7", "--trainer.check_val_every_n_epoch", "null",
+                              "--model.init_args.latent", "16", "--model.init_args.noise.std", "0.0",
+                              "--model.init_args.blocks", "1", "--data.data_dir", str(cli_data)]
+    command = run.fit_command()
+    assert command[3:9] == ["fit", "--config", mgn, "--config", str(tmp_path / "first.yaml"), "--config"]
+    assert command[command.index("--seed_everything") + 1] == "3" and command[-len(run.args):] == list(run.args)
+    cli = build_cli(command[4:], run=False)
+    assert cli.datamodule.batch_size == 2  # second.yaml over first.yaml
+    assert cli.trainer.max_epochs == 7 and cli.trainer.check_val_every_n_epoch is None  # the arguments over the files
+    assert (cli.model.hparams.latent, cli.model.hparams.blocks, cli.model.lr_schedule.lr) == (16, 1, 1e-3)
+    assert run.setting("data.dataset") == str(cli_data / TINY12) and run.setting("data.batch_size") == 2
+    assert run.setting("trainer.max_epochs") == 7 and run.setting("data.data_dir") == str(cli_data)
+    assert prepare_datasets([run], lambda message: None) == [str(cli_data / TINY12)]  # found, nothing generated
+
+
+def test_a_sweep_file_extends_another(tmp_path):
+    """`base:`: the base's keys with the file's on top (mappings merged key by key), `models` replaced whole;
+    a base by name is a sweep preset; a missing base and a cycle are refused naming the file."""
+    mgn, ggns = str(CONF_DIR / "plate" / "mgn.yaml"), str(CONF_DIR / "plate" / "ggns.yaml")
+    (tmp_path / "parent.yaml").write_text(yaml.safe_dump(
+        {"output": "out", "seeds": [0], "parallel": 2, "overrides": {"data": {"dataset": "plate_small", "batch_size": 8}},
+         "models": {"mgn": {"config": mgn}, "ggns": {"config": ggns}}}))
+    (tmp_path / "child.yaml").write_text(yaml.safe_dump(
+        {"base": "parent.yaml", "seeds": [1, 2], "overrides": {"data": {"batch_size": 4}},
+         "models": {"ggns": {"config": ggns}}}))
+    sweep = load_sweep(tmp_path / "child.yaml")
+    assert "base" not in sweep and sweep["seeds"] == [1, 2] and sweep["parallel"] == 2
+    assert sweep["overrides"] == {"data": {"dataset": "plate_small", "batch_size": 4}} and list(sweep["models"]) == ["ggns"]
+    (tmp_path / "named.yaml").write_text(yaml.safe_dump({"base": "plate", "output": str(tmp_path / "o")}))
+    assert [r.model for r in runs_of(load_sweep(tmp_path / "named.yaml"))][:1] == ["ggns"]  # conf/sweeps/plate.yaml's
+    (tmp_path / "lost.yaml").write_text("base: nowhere\n")
+    with pytest.raises(ValueError, match=r"lost\.yaml: its base 'nowhere' is neither a file beside it nor a preset of conf/sweeps/"):
+        load_sweep(tmp_path / "lost.yaml")
+    (tmp_path / "parent.yaml").write_text(yaml.safe_dump({"base": "child.yaml", "output": "out"}))
+    with pytest.raises(ValueError, match=r"child\.yaml: its base 'parent\.yaml' makes a cycle|parent\.yaml: its base 'child\.yaml' makes a cycle"):
+        load_sweep(tmp_path / "child.yaml")
+
+
+def test_lists_of_command_line_strings_are_refused_naming_the_mapping(tmp_path):
+    """The former form (`args: ["--trainer.max_time", ...]`, in a sweep or a model) is an error naming the file,
+    the place and the mapping that says the same; so is `overrides` with a key Lightning does not have."""
+    mgn = str(CONF_DIR / "plate" / "mgn.yaml")
+    path = tmp_path / "old.yaml"
+    for spec, where in (({"args": ["--trainer.max_time", "00:00:12:00", "--model.init_args.latent", "64"],
+                          "models": {"mgn": {"config": mgn}}}, "`args`"),
+                        ({"models": {"mgn": {"config": mgn, "args": ["--trainer.max_time", "00:00:12:00",
+                                                                     "--model.init_args.latent", "64"]}}},
+                         "model 'mgn': `args`")):
+        path.write_text(yaml.safe_dump({"output": "out", "seeds": [0], **spec}))
+        with pytest.raises(ValueError) as error:
+            load_sweep(path)
+        message = str(error.value)
+        assert message.startswith(f"{path}: {where}: a list of command-line strings is the former form"), message
+        assert "{trainer: {max_time: '00:00:12:00'}, model: {init_args: {latent: 64}}}" in message
+    path.write_text(yaml.safe_dump({"output": "out", "seeds": [0], "overrides": {"trainers": {"max_epochs": 1}},
+                                    "models": {"mgn": {"config": mgn}}}))
+    with pytest.raises(ValueError, match=r"`overrides` has keys \['trainers'\], which are not Lightning's"):
+        load_sweep(path)
+    path.write_text(yaml.safe_dump({"output": "out", "seeds": [0], "configs": ["gone.yaml"],
+                                    "models": {"mgn": {"config": mgn}}}))
+    with pytest.raises(FileNotFoundError, match="config gone.yaml not found"):
+        load_sweep(path)

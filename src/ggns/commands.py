@@ -239,7 +239,7 @@ def bench_stability(dataset: str = "plate", checkpoint: dict[str, str] | None = 
 
 def bench_learning(*overrides: str, config: str = "plate_ggns", minutes: float | None = None,
                    parallel: int | None = None, variant: Sequence[str] | None = None, output_dir: str | None = None,
-                   report_only: bool = False) -> Path:
+                   report_only: bool = False, dry_run: bool = False) -> Path | None:
     """Learning curves of named model variants within a wall-clock budget each (table + plots).
 
     Args:
@@ -250,8 +250,9 @@ def bench_learning(*overrides: str, config: str = "plate_ggns", minutes: float |
         variant: run only these variants (default: all; the report covers every variant with logs)
         output_dir: where the variants and the report go (default: the file's output)
         report_only: only write the report from the logs
+        dry_run: print each variant's fit command (its config files and settings) and run nothing
     """
-    from .experiments.learning import load_learning, run_learning, write_report
+    from .experiments.learning import load_learning, run_learning, variant_runs, write_report
 
 
     overrides = list(overrides)
@@ -259,7 +260,19 @@ def bench_learning(*overrides: str, config: str = "plate_ggns", minutes: float |
         if value is not None:
             overrides.append(f"{key}={value}")
     spec = load_learning(config, overrides)
+    if dry_run:
+        print_commands([r for r in variant_runs(spec) if not variant or r.model in variant])
+        return None
     return write_report(spec) if report_only else run_learning(spec, variant)
+
+
+def print_commands(runs) -> None:
+    """Each run's fit command as a shell line (`python -m ggns fit --config ... --key value ...`)."""
+    import shlex
+
+    for run in runs:
+        print(f"# {run.model} seed {run.seed}")
+        print(shlex.join(["python", *run.fit_command()[1:]]))
 
 
 def export(checkpoint: str, dataset: str = "plate_small", data_dir: str | None = None,
@@ -433,7 +446,7 @@ def rollout(checkpoint: str, input: str, output: str = "predictions.h5", traject
 
 
 def sweep(*overrides: str, config: str = "plate", task: int | None = None, slurm: str | None = None,
-          aggregate_only: bool = False) -> None:
+          aggregate_only: bool = False, dry_run: bool = False) -> None:
     """Multi-seed sweep of model configs (fit + test per run, resumable), then baselines and summary.
 
     Args:
@@ -442,11 +455,16 @@ def sweep(*overrides: str, config: str = "plate", task: int | None = None, slurm
         task: run only this run of the grid (a SLURM array task; no summary)
         slurm: write a SLURM job-array script for the sweep to this file instead of running
         aggregate_only: only aggregate the finished runs (e.g. after a SLURM array)
+        dry_run: print each run's fit command (its config files and settings; with --task, that run's) and run nothing
     """
-    from .experiments.sweep import load_sweep, run_baselines, run_sweep, slurm_script, summarize
+    from .experiments.sweep import load_sweep, run_baselines, run_sweep, runs_of, slurm_script, summarize
 
 
     spec = load_sweep(config, list(overrides))
+    if dry_run:
+        runs = runs_of(spec)
+        print_commands(runs if task is None else [runs[task]])
+        return
     if slurm:
         Path(slurm).write_text(slurm_script(spec, config))
         print(f"wrote {slurm} (submit with sbatch)")

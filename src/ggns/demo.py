@@ -21,12 +21,12 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from .batch import TrajectoryBatch  # noqa: E402
 from .cli import build_cli  # noqa: E402
-from .config import CONF_DIR, config_file  # noqa: E402
+from .config import (CONF_DIR, LIGHTNING_KEYS, command_line, config_file, load_layered, old_form_error,  # noqa: E402
+                     resolve_preset)
 from .data.module import SimulationDataModule  # noqa: E402
 from .evaluation.evaluate import MetricTable  # noqa: E402
 from .evaluation.pictures import error_curves, rollout_animation, rollout_picture, rollout_series  # noqa: E402
@@ -43,7 +43,14 @@ TASKS = ("plate", "tissue")
 def load_demo(task: str) -> dict:
     if task not in TASKS:
         raise ValueError(f"unknown demo task {task!r}; expected one of {TASKS}")
-    spec = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "demo" / f"{task}.yaml"), resolve=True)
+    spec = load_layered(resolve_preset(task, "demo"), "demo")
+    train = spec["train"]
+    if "args" in train:
+        raise old_form_error(f"{CONF_DIR / 'demo' / task}.yaml: train: `args`", train["args"] or [])
+    unknown = sorted({str(k).split(".")[0] for k in train.get("overrides") or {}} - set(LIGHTNING_KEYS))
+    if unknown:
+        raise ValueError(f"{CONF_DIR / 'demo' / task}.yaml: train: `overrides` has keys {unknown}, which are not "
+                         f"Lightning's (known: {list(LIGHTNING_KEYS)})")
     spec.setdefault("paper", paper_figures(task))  # the paper's test figures, for the report
     return spec
 
@@ -125,17 +132,25 @@ def pictures(spec: dict, models: dict, data: SimulationDataModule, output: Path)
     return [figure, animation, errors]
 
 
-def train_from_scratch(spec: dict, output: Path, minutes: float) -> dict:
-    """Fit GGNS from nothing for `minutes` through the Lightning CLI (conf/demo's CPU-tuned settings,
-    progress bar on); returns its log directory, steps, seconds and validation curve."""
+def train_arguments(spec: dict, output: Path, minutes: float) -> list[str]:
+    """The Lightning CLI arguments of the from-scratch fit: `train.config`, then `train.configs` stacked after
+    it, the demo's data and validation trajectories, then `train.overrides` (conf/demo's CPU-tuned settings),
+    the budget, a progress bar, and the log directory."""
     train = spec["train"]
     seconds = int(round(minutes * 60))
-    args = ["--config", str(config_file(train["config"])), "--data.dataset", spec["data"],
+    files = [str(config_file(path)) for path in [train["config"], *(train.get("configs") or [])]]
+    return [*(part for path in files for part in ("--config", path)), "--data.dataset", spec["data"],
             "--data.max_eval_trajectories", str(train["val_trajectories"]),
-            "--data.eval_batch_size", str(train["val_trajectories"]), *train["args"],
+            "--data.eval_batch_size", str(train["val_trajectories"]), *command_line(train.get("overrides") or {}),
             "--trainer.max_time", f"00:{seconds // 3600:02d}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}",
             "--trainer.enable_progress_bar", "true", "--trainer.enable_model_summary", "false",
             "--trainer.logger.init_args.save_dir", str(output), "--trainer.logger.init_args.name", "ggns_from_scratch"]
+
+
+def train_from_scratch(spec: dict, output: Path, minutes: float) -> dict:
+    """Fit GGNS from nothing for `minutes` through the Lightning CLI (`train_arguments`: conf/demo's
+    CPU-tuned settings, progress bar on); returns its log directory, steps, seconds and validation curve."""
+    args = train_arguments(spec, output, minutes)
     with warnings.catch_warnings():  # LightningCLI warns that `python -m ggns demo`'s own argv is not its args
         warnings.filterwarnings("ignore", message=".*LightningCLI's args parameter.*")
         cli = build_cli(args, run=False)

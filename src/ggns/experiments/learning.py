@@ -7,23 +7,32 @@ A learning file (conf/learning/<name>.yaml, a checkout's experiments/<experiment
     val_every: 100                              # optimizer steps between validations
     seed: 0
     parallel: 2                                 # variants at once (torch threads = cores / parallel)
-    base: {config: conf/plate/ggns.yaml, args: ["--data.dataset", "plate_small"]}
-    variants:                                   # name -> Lightning CLI arguments (after the base's)
-      paper: []
-      noise_0.005: ["--model.init_args.noise.std", "0.005"]
-      mgn: {config: conf/plate/mgn.yaml, args: []}  # or {config, args}: another model config
+    run:                                        # what every variant fits
+      config: conf/plate/ggns.yaml              # its Lightning config
+      configs: [conf/profiles/eval_9.yaml]      # optional: config files stacked after it
+      overrides: {data: {dataset: plate_small}} # optional: Lightning settings, a mapping of their keys
+    variants:                                   # name -> what it changes, in one of two forms:
+      paper: {}                                 # a mapping of Lightning settings (over the run's), or
+      noise_0.005: {model: {init_args: {noise: {std: 0.005}}}}
+      mgn: {config: conf/plate/mgn.yaml, configs: [], overrides: {}}  # {config, configs, overrides}
 
-A file may start from another with `extends: <learning file>`: the parent's keys, then the file's own on
-top, except `variants`, which the file replaces whole when it has them (so a companion run names only
-what differs: another seed, one more variant beside the parent's).
+A variant's mapping either holds Lightning keys (seed_everything, trainer, model, data, evaluation) or
+only `config`, `configs` and `overrides` (its own model config instead of the run's, config files after
+the run's, settings over the run's), never both; a list of command-line strings (the former form) is
+refused naming the mapping that says the same. `{config: ...}` fits another model config with the run's
+files and settings and then its own, so different models (GGNS beside MGN) learn side by side within one
+budget.
 
-A variant given as `{config, args}` fits its own config with the base's arguments and then its own, so
-different models (GGNS beside MGN) learn side by side within one budget.
+A file may start from another with `base: <learning file>` (`ggns.config.base_chain`): the base's keys,
+then the file's own on top, except `variants`, which the file replaces whole when it has them (so a
+companion run names only what differs: another seed, one more variant beside the base's).
 
-Each variant is one `python -m ggns fit` in its own process (`sweep.Run` builds the command), with
-the budget and validation arguments first, then the base's, then the variant's (later ones win),
-plus a `TrainingClock` callback (`ggns.experiments.clock`). A variant is finished when its fit exited cleanly
-(`<run>/learning_finished.json`); finished variants are skipped, an interrupted one resumes from its
+Each variant is one `python -m ggns fit` in its own process (`sweep.Run` builds the command): its config,
+the run's and its own config files, then the budget and validation arguments, then the run's and the
+variant's settings merged (the variant's win; `ggns.config.command_line`), plus a `TrainingClock` callback
+(`ggns.experiments.clock`). A variant is finished when its fit exited cleanly
+(`<run>/learning_finished.json`, which records the settings it ran with); finished variants are skipped
+(an error if their settings differ from the file's now), an interrupted one resumes from its
 `last.ckpt`. `write_report` then reads the event files and writes <output>/learning.md,
 learning.csv, curves_steps.png and curves_seconds.png.
 """
@@ -38,11 +47,12 @@ from typing import Callable, Sequence
 
 from omegaconf import OmegaConf
 
-from ..config import resolve_preset
+from ..config import LIGHTNING_KEYS, command_line, config_file, load_layered, merge_overrides, old_form_error, resolve_preset
+from ..config import settings as settings_of
 from ..reports import write_csv, write_json
 from .curves import (CLOCK, COLUMNS, LATE_STEPS, RATIO_THRESHOLD, VALIDATION_COLUMNS, markdown_rows, plot_curves,
                      read_scalars, validation_markdown, validation_rows, variant_row)
-from .sweep import Launch, Run, RunFailed, launch_process
+from .sweep import Launch, Run, RunFailed, check_stack, launch_process
 
 FINISHED = "learning_finished.json"
 
@@ -59,49 +69,62 @@ def __getattr__(name: str):
 
 
 # ---- the variants ---------------------------------------------------------------------------------
-def learning_file(path: Path, seen: tuple[Path, ...] = ()):
-    """The file's contents on top of its `extends` chain (module docstring); a cycle is an error."""
-    if path.resolve() in seen:
-        raise ValueError(f"{path}: `extends` goes round in a circle ({' -> '.join(str(p) for p in seen)})")
-    own = OmegaConf.load(path)
-    parent = own.pop("extends", None)
-    if parent is None:
-        return own
-    merged = OmegaConf.merge(learning_file(resolve_preset(str(parent), "learning"), (*seen, path.resolve())),
-                             {k: v for k, v in own.items() if k != "variants"})
-    if "variants" in own:
-        merged.variants = own.variants
-    return merged
+STRUCTURED = ("config", "configs", "overrides")  # the keys of a variant that is not a mapping of settings
+
+
+def variant_spec(spec: dict, name: str, source: str = "learning file") -> dict:
+    """Variant `name` as {config (None: the run's), configs, overrides}, from either of its forms (module
+    docstring); anything else is a ValueError naming `source` and the variant."""
+    variant = spec["variants"][name]
+    where = f"{source}: variant {name!r}"
+    if variant is None:
+        variant = {}
+    if isinstance(variant, list):
+        raise old_form_error(where, variant, example=name)
+    if not isinstance(variant, dict):
+        raise ValueError(f"{where} must be a mapping of Lightning settings or {{config, configs, overrides}}, "
+                         f"got {variant!r}")
+    if "args" in variant:
+        raise old_form_error(f"{where}: `args`", variant["args"] or [], example="overrides")
+    keys = {str(k) for k in variant}
+    structured = keys & set(STRUCTURED)
+    settings = {k for k in keys if k.split(".")[0] in LIGHTNING_KEYS}
+    unknown = sorted(keys - structured - settings)
+    if unknown or (structured and settings):
+        raise ValueError(f"{where} has keys {sorted(keys)}: a variant is either a mapping of Lightning settings "
+                         f"(keys among {list(LIGHTNING_KEYS)}) or one of {{config, configs, overrides}}"
+                         + (f" (unknown keys: {unknown})" if unknown else " (not both)"))
+    if not structured:
+        return {"config": None, "configs": [], "overrides": variant}
+    check_stack(where, variant)
+    if "config" in variant and not config_file(str(variant["config"])).is_file():
+        raise FileNotFoundError(f"{where}: its config {variant['config']} not found")
+    return {"config": variant.get("config"), "configs": list(variant.get("configs") or []),
+            "overrides": variant.get("overrides") or {}}
 
 
 def load_learning(name_or_path: str | Path, overrides: Sequence[str] = ()) -> dict:
-    """The learning file (module docstring) with `key=value` overrides, checked."""
+    """The learning file (module docstring) over its bases, with `key=value` overrides, checked."""
     path = resolve_preset(name_or_path, "learning")
-    spec = OmegaConf.to_container(OmegaConf.merge(learning_file(path), OmegaConf.from_dotlist(list(overrides))),
-                                  resolve=True)
-    missing = [k for k in ("output", "minutes", "val_every", "base", "variants") if k not in spec]
+    spec = OmegaConf.to_container(OmegaConf.merge(load_layered(path, "learning", replace=("variants",)),
+                                                  OmegaConf.from_dotlist(list(overrides))), resolve=True)
+    missing = [k for k in ("output", "minutes", "val_every", "run", "variants") if k not in spec]
     if missing:
         raise ValueError(f"{path}: learning file lacks {missing}")
-    base = spec["base"]
-    if not isinstance(base, dict) or "config" not in base:
-        raise ValueError(f"{path}: `base` needs a `config` (a Lightning config file)")
-    if not Path(base["config"]).is_file():
-        raise FileNotFoundError(f"{path}: base config {base['config']} not found")
+    run = spec["run"]
+    if not isinstance(run, dict) or "config" not in run:
+        raise ValueError(f"{path}: `run` needs a `config` (a Lightning config file)")
+    unknown = sorted(set(run) - set(STRUCTURED) - {"args"})
+    if unknown:
+        raise ValueError(f"{path}: `run` has unknown keys {unknown} (it has `config` and may have `configs` and "
+                         f"`overrides`)")
+    check_stack(f"{path}: `run`", run)
+    if not config_file(str(run["config"])).is_file():
+        raise FileNotFoundError(f"{path}: the run's config {run['config']} not found")
     if not isinstance(spec["variants"], dict) or not spec["variants"]:
-        raise ValueError(f"{path}: `variants` must map at least one name to a list of CLI arguments")
-    for name, variant in spec["variants"].items():
-        args = variant
-        if isinstance(variant, dict):
-            unknown = sorted(set(variant) - {"config", "args"})
-            if "config" not in variant or unknown:
-                raise ValueError(f"{path}: variant {name!r} as a mapping needs `config` and may have `args` "
-                                 f"(unknown keys: {unknown})")
-            if not Path(variant["config"]).is_file():
-                raise FileNotFoundError(f"{path}: variant {name!r}'s config {variant['config']} not found")
-            args = variant.get("args", [])
-        if not isinstance(args, list):
-            raise ValueError(f"{path}: variant {name!r} must be a list of CLI arguments or a mapping "
-                             f"{{config, args}}, got {variant!r}")
+        raise ValueError(f"{path}: `variants` must map at least one name to what it changes")
+    for name in spec["variants"]:
+        variant_spec(spec, name, str(path))
         if not name or "/" in name or name.startswith("."):
             raise ValueError(f"{path}: variant name {name!r} is not a directory name")
     if not float(spec["minutes"]) > 0:
@@ -117,18 +140,21 @@ def max_time(minutes: float) -> str:
     return f"{seconds // 86400:02d}:{seconds // 3600 % 24:02d}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
 
 
-def variant_config(spec: dict, name: str) -> tuple[str, list[str]]:
-    """The variant's model config (its own or the base's) and its arguments (after the base's)."""
-    variant = spec["variants"][name]
-    if isinstance(variant, dict):
-        return str(variant["config"]), [str(a) for a in variant.get("args", [])]
-    return str(spec["base"]["config"]), [str(a) for a in variant]
+def variant_config(spec: dict, name: str) -> tuple[str, list[str], list[str]]:
+    """The variant's model config (its own or the run's), its config files (the run's, then its own) and its
+    arguments (the run's settings merged with its own, as `--key value`)."""
+    variant, run = variant_spec(spec, name), spec["run"]
+    configs = [str(c) for c in [*(run.get("configs") or []), *variant["configs"]]]
+    args = command_line(merge_overrides(run.get("overrides") or {}, variant["overrides"]))
+    return str(variant["config"] or run["config"]), configs, args
 
 
 def variant_change(spec: dict, name: str) -> list[str]:
-    """The report's `change` column: the variant's arguments, after `--config X` when it has its own."""
-    config, args = variant_config(spec, name)
-    return (["--config", config] if isinstance(spec["variants"][name], dict) else []) + args
+    """The report's `change` column: the variant's own config and files (`--config X`) and settings."""
+    variant = variant_spec(spec, name)
+    files = [variant["config"]] if variant["config"] else []
+    return ([part for path in [*files, *variant["configs"]] for part in ("--config", str(path))]
+            + command_line(variant["overrides"]))
 
 
 def variant_runs(spec: dict) -> list[Run]:
@@ -137,10 +163,15 @@ def variant_runs(spec: dict) -> list[Run]:
               "--trainer.val_check_interval", str(int(spec["val_every"])),
               "--trainer.check_val_every_n_epoch", "null",
               "--trainer.callbacks+=ggns.experiments.clock.TrainingClock"]
-    base = [str(a) for a in spec["base"].get("args", [])]
     configs = {name: variant_config(spec, name) for name in spec["variants"]}
-    return [Run(name, int(spec.get("seed", 0)), config, tuple(budget + base + args), Path(spec["output"]))
-            for name, (config, args) in configs.items()]
+    return [Run(name, int(spec.get("seed", 0)), config, tuple(budget + args), Path(spec["output"]), tuple(files))
+            for name, (config, files, args) in configs.items()]
+
+
+def run_settings(run: Run) -> dict:
+    """The settings a variant's fit runs with beside its model config: its config files', then its
+    arguments' (`ggns.config.settings`), as JSON keeps them."""
+    return json.loads(json.dumps(settings_of(run.args, run.configs)))
 
 
 def fit_variant(run: Run, threads: int | None = None, log=print, launch: Launch = launch_process) -> Run:
@@ -149,9 +180,15 @@ def fit_variant(run: Run, threads: int | None = None, log=print, launch: Launch 
     marker = run.fit_dir / FINISHED
     if marker.is_file():
         done = json.loads(marker.read_text())
-        if list(done["args"]) != list(run.args):
-            raise ValueError(f"variant {run.model!r} finished with other arguments than now ({marker}); "
-                             f"delete {run.fit_dir} or rename the variant")
+        # the settings it ran with (a marker written before config files were stacked: those its arguments made)
+        ran = done["settings"] if "settings" in done else json.loads(json.dumps(settings_of(done["args"])))
+        now = run_settings(run)
+        if ran != now or done.get("config", run.config) != run.config:
+            changed = sorted(k for k in set(ran) | set(now) if ran.get(k, "(unset)") != now.get(k, "(unset)"))
+            raise ValueError(f"variant {run.model!r} finished with other arguments than now ({marker}: "
+                             + (", ".join(f"{k}: {ran.get(k, '(unset)')!r} then, {now.get(k, '(unset)')!r} now"
+                                          for k in changed) or f"config {done.get('config')}") +
+                             f"); delete {run.fit_dir} or rename the variant")
         log(f"skip {run.model}: {marker} exists")
         return run
     run.fit_dir.mkdir(parents=True, exist_ok=True)
@@ -161,7 +198,8 @@ def fit_variant(run: Run, threads: int | None = None, log=print, launch: Launch 
         status = launch(run.fit_command(), out, {**os.environ, **({"OMP_NUM_THREADS": str(threads)} if threads else {})})
     if status != 0:
         raise RunFailed.of(f"fit of variant {run.model}", status, out.name)
-    write_json(marker, {"args": list(run.args), "process_seconds": time.perf_counter() - start})
+    write_json(marker, {"config": run.config, "configs": list(run.configs), "args": list(run.args),
+                        "settings": run_settings(run), "process_seconds": time.perf_counter() - start})
     return run
 
 
@@ -207,9 +245,10 @@ def write_report(spec: dict, log=print) -> Path:
     figures = [plot_curves(curves, output / f"curves_{x}.png", x) for x in ("steps", "seconds")]
     finished = [r.model for r in runs if (r.fit_dir / FINISHED).is_file()]
     clocked = [r.model for r in runs if CLOCK in curves[r.model]]
-    base = spec["base"]
+    run = spec["run"]
+    files = " ".join(f"--config {path}" for path in [run["config"], *(run.get("configs") or [])])
     lines = ["# Learning per CPU-second", "",
-             f"Base: `{base['config']}` with `{' '.join(map(str, base.get('args', []))) or '(no arguments)'}`; "
+             f"Run: `{files}` with `{' '.join(command_line(run.get('overrides') or {})) or '(no settings)'}`; "
              f"seed {spec.get('seed', 0)}; budget {spec['minutes']} min of wall-clock per variant "
              f"(`trainer.max_time`, validation included); validation every {spec['val_every']} optimizer steps; "
              f"{spec.get('parallel', 1)} variant(s) at once. Finished: {len(finished)} of {len(spec['variants'])} "

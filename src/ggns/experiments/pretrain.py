@@ -22,7 +22,7 @@ from omegaconf import OmegaConf
 
 from ..batch import TrajectoryBatch
 from ..checkpoints import CHECKPOINT_FORMAT, FORMAT_KEY, read_checkpoint, sha256
-from ..config import CONF_DIR
+from ..config import CONF_DIR, command_line
 from ..data.module import SimulationDataModule
 from ..data.schema import SCHEMA_VERSION, SplitReader, content_hash
 from ..evaluation.evaluate import MetricTable
@@ -45,7 +45,8 @@ def load_spec(path: str | Path = SPEC) -> dict:
 
 def entry_run(name: str, spec: dict) -> tuple[Run, int, list[str]]:
     """(the sweep run, its task index, the sweep overrides) that trains entry `name`; the entry's
-    `overrides` (a mapping of dotted Lightning CLI keys, e.g. `trainer.max_time`) go after the sweep's."""
+    `overrides` (a mapping of Lightning settings, nested or with dotted keys such as `trainer.max_time`)
+    go after the sweep's (`ggns.config.command_line`)."""
     if name not in spec["entries"]:
         raise ValueError(f"no pretrained entry {name!r} in {SPEC}; entries: {', '.join(spec['entries'])}")
     entry, task = spec["entries"][name], name.split("/")[0]
@@ -55,7 +56,7 @@ def entry_run(name: str, spec: dict) -> tuple[Run, int, list[str]]:
     if index is None:
         raise ValueError(f"sweep {entry['sweep']!r} has no model {entry['model']!r}")
     run = runs[index]
-    extra = tuple(part for key, value in (entry.get("overrides") or {}).items() for part in (f"--{key}", str(value)))
+    extra = tuple(command_line(entry.get("overrides") or {}))
     return dataclasses.replace(run, args=run.args + extra), index, overrides
 
 

@@ -5,12 +5,21 @@ A sweep file (conf/sweeps/<name>.yaml, a checkout's experiments/<experiment>/swe
     output: lightning_logs/sweeps/plate     # runs go to <output>/<model>/seed_<s>[_test]
     seeds: [0, 1, 2]
     parallel: 2                             # runs at once on this machine
-    args: ["--data.dataset", "plate_small"] # CLI arguments for every run
-    models:                                 # name -> Lightning config (+ its own arguments)
-      ggns: {config: conf/plate/ggns.yaml, args: []}
-      mgn:  {config: conf/plate/mgn.yaml}
+    configs: [conf/profiles/cpu.yaml]       # optional: config files stacked after each model's config
+    overrides:                              # optional: Lightning settings of every run, a mapping of its keys
+      data: {dataset: plate_small}
+    models:                                 # name -> its Lightning config (+ its own files and settings)
+      ggns: {config: conf/plate/ggns.yaml, overrides: {trainer: {max_time: "00:00:40:00"}}}
+      mgn:  {config: conf/plate/mgn.yaml, configs: [my_profile.yaml]}
     findings_ggns: [ggns_id]                # optional: variants of GGNS that the summary also judges
                                             # in GGNS's place (the paper's findings, the targets)
+
+A run's fit is `python -m ggns fit --config <model config> --config <each of configs, then the model's
+configs> --seed_everything <seed> --trainer.logger... <overrides>`: the files stack in that order (a
+later file wins key by key), then the sweep's `overrides` merged with the model's (the model's win) as
+`--dotted.key value` arguments (`ggns.config.command_line`), which win over every file. A sweep file may
+extend another (`base: <sweep file>`, `ggns.config.base_chain`): its keys over the base's, `models`
+replaced whole when it has them.
 
 Each metric family of a run is tested with the checkpoint selected on that family
 (`ggns.evaluation.selection`; `Run.checkpoints`): one `test` per distinct checkpoint, computing
@@ -57,7 +66,8 @@ from typing import IO, Callable
 from omegaconf import OmegaConf
 
 from ..reports import markdown_table, metrics_markdown, write_json, write_text
-from ..config import load_config, resolve_preset
+from ..config import (LIGHTNING_KEYS, command_line, config_file, load_config, load_layered, merge_overrides,
+                      old_form_error, resolve_preset, settings)
 from ..data import DEFAULT_DATASET, SPLITS, split_path
 from ..evaluation.schedules import parse_schedule
 from ..evaluation.selection import (CHECKPOINT_KEY, CHECKPOINTS_KEY, FAMILY_CHECKPOINT, M10, ONE_STEP, candidates,
@@ -108,11 +118,20 @@ class TestPart(_Tested):
 
 @dataclass(frozen=True)
 class Run(_Tested):
+    """One fit (and its tests): `config` (a Lightning config), then the config files `configs` stacked
+    after it, then the command-line `args` (the run's overrides, `ggns.config.command_line`)."""
     model: str
     seed: int
     config: str
     args: tuple[str, ...]
     output: Path
+    configs: tuple[str, ...] = ()
+
+    def setting(self, key: str):
+        """The value of a Lightning setting (a dotted key, `data.dataset`) that the run's config files and
+        arguments make (`ggns.config.settings`), None if none of them sets it."""
+        files = [f for f in (self.config, *self.configs) if config_file(f).is_file()]  # each with its bases
+        return settings(self.args, files).get(key)
 
     @property
     def fit_dir(self) -> Path:
@@ -123,7 +142,9 @@ class Run(_Tested):
         return self.output / self.model / f"seed_{self.seed}_test"
 
     def _cli(self, subcommand: str, version: str) -> list[str]:
-        return [sys.executable, "-m", "ggns", subcommand, "--config", self.config, "--seed_everything", str(self.seed),
+        stacked = [part for path in self.configs for part in ("--config", path)]
+        return [sys.executable, "-m", "ggns", subcommand, "--config", self.config, *stacked,
+                "--seed_everything", str(self.seed),
                 "--trainer.logger.init_args.save_dir", str(self.output),
                 "--trainer.logger.init_args.name", self.model,
                 "--trainer.logger.init_args.version", version, *self.args]
@@ -205,20 +226,50 @@ class Run(_Tested):
         return {**merged, CHECKPOINTS_KEY: checkpoints}
 
 
+def check_stack(source: str, spec: dict) -> None:
+    """`configs` (a list of existing config files) and `overrides` (a mapping of Lightning keys) of a sweep,
+    one of its models, a learning file's run or variant, checked; the former `args` (a list of command-line
+    strings) is refused, naming the mapping that says the same."""
+    if "args" in spec:
+        raise old_form_error(f"{source}: `args`", spec["args"] or [])
+    configs = spec.get("configs") or []
+    if not isinstance(configs, list) or not all(isinstance(c, str) for c in configs):
+        raise ValueError(f"{source}: `configs` must be a list of config files, got {configs!r}")
+    for config in configs:
+        if not config_file(config).is_file():
+            raise FileNotFoundError(f"{source}: config {config} not found")
+    overrides = spec.get("overrides") or {}
+    if isinstance(overrides, list):
+        raise old_form_error(f"{source}: `overrides`", overrides)
+    if not isinstance(overrides, dict):
+        raise ValueError(f"{source}: `overrides` must be a mapping of Lightning settings, got {overrides!r}")
+    unknown = sorted({str(k).split(".")[0] for k in overrides} - set(LIGHTNING_KEYS))
+    if unknown:
+        raise ValueError(f"{source}: `overrides` has keys {unknown}, which are not Lightning's "
+                         f"(known: {list(LIGHTNING_KEYS)})")
+
+
 def load_sweep(name_or_path: str | Path, overrides: list[str] = ()) -> dict:
+    """The sweep file (module docstring) over its bases, with `key=value` overrides, checked."""
     path = resolve_preset(name_or_path, "sweeps")
-    cfg = OmegaConf.merge(OmegaConf.load(path), OmegaConf.from_dotlist(list(overrides)))
+    cfg = OmegaConf.merge(load_layered(path, "sweeps", replace=("models",)), OmegaConf.from_dotlist(list(overrides)))
     sweep = OmegaConf.to_container(cfg, resolve=True)
     missing = [k for k in ("output", "seeds", "models") if k not in sweep]
     if missing:
         raise ValueError(f"{path}: sweep lacks {missing}")
     if not sweep["models"] or not sweep["seeds"]:
         raise ValueError(f"{path}: a sweep needs at least one model and one seed")
+    check_stack(str(path), sweep)
     for name, spec in sweep["models"].items():
         if not isinstance(spec, dict) or "config" not in spec:
             raise ValueError(f"{path}: model {name!r} needs a `config` (a Lightning config file)")
-        if not Path(spec["config"]).is_file():
+        unknown = sorted(set(spec) - {"config", "configs", "overrides", "args"})
+        if unknown:
+            raise ValueError(f"{path}: model {name!r} has unknown keys {unknown} (a model has `config` and may have "
+                             f"`configs` and `overrides`)")
+        if not config_file(str(spec["config"])).is_file():
             raise FileNotFoundError(f"{path}: model {name!r}: config {spec['config']} not found")
+        check_stack(f"{path}: model {name!r}", spec)
     unknown = [m for m in sweep.get("findings_ggns", []) if m not in sweep["models"]]
     if unknown:
         raise ValueError(f"{path}: findings_ggns names {unknown}, which are not models of the sweep "
@@ -229,10 +280,16 @@ def load_sweep(name_or_path: str | Path, overrides: list[str] = ()) -> dict:
 
 
 def runs_of(sweep: dict) -> list[Run]:
-    """The grid in a fixed order (models as listed, then seeds): task i of a job array is runs[i]."""
-    output, common = Path(sweep["output"]), tuple(str(a) for a in sweep.get("args", []))
-    return [Run(name, int(seed), str(spec["config"]), common + tuple(str(a) for a in spec.get("args", [])), output)
-            for name, spec in sweep["models"].items() for seed in sweep["seeds"]]
+    """The grid in a fixed order (models as listed, then seeds): task i of a job array is runs[i]. A run's
+    files: its model's config, the sweep's `configs`, the model's `configs`; its arguments: the sweep's
+    `overrides` merged with the model's (module docstring)."""
+    output = Path(sweep["output"])
+    runs = []
+    for name, spec in sweep["models"].items():
+        configs = tuple(str(c) for c in [*(sweep.get("configs") or []), *(spec.get("configs") or [])])
+        args = tuple(command_line(merge_overrides(sweep.get("overrides") or {}, spec.get("overrides") or {})))
+        runs += [Run(name, int(seed), str(spec["config"]), args, output, configs) for seed in sweep["seeds"]]
+    return runs
 
 
 def checkpoints_markdown(checkpoints: dict[str, dict]) -> str:
@@ -314,29 +371,18 @@ def execute(run: Run, threads: int | None = None, log: Callable[[str], None] = p
     return run
 
 
-def _option(args: tuple[str, ...], name: str) -> str | None:
-    """The value of the last `name VALUE` or `name=VALUE` among CLI arguments (None if absent)."""
-    value = None
-    for i, arg in enumerate(args):
-        if arg == name and i + 1 < len(args):
-            value = args[i + 1]
-        elif arg.startswith(name + "="):
-            value = arg.split("=", 1)[1]
-    return value
-
-
 def prepare_datasets(runs: list[Run], log=print) -> list[str]:
-    """Generate the missing split files of every dataset the runs name (`--data.dataset`, `--data.data_dir`),
-    once, before runs start in parallel: otherwise each run would generate the same files at once,
-    and inside its fit's wall-clock budget. Returns the datasets checked."""
+    """Generate the missing split files of every dataset the runs name (`data.dataset`, `data.data_dir`, from
+    their config files and arguments, `Run.setting`), once, before runs start in parallel: otherwise each run
+    would generate the same files at once, and inside its fit's wall-clock budget. Returns the datasets checked."""
     checked = []
-    def dataset_of(run: Run) -> str:
-        named = _option(run.args, "--data.dataset")
-        if named is None:  # the Lightning config's, else the data module's default
-            named = (OmegaConf.load(run.config).get("data") or {}).get("dataset")
-        return named or DEFAULT_DATASET
 
-    for dataset, data_dir in dict.fromkeys((dataset_of(r), _option(r.args, "--data.data_dir")) for r in runs):
+    def data_of(run: Run) -> tuple[str, str | None]:
+        dataset = run.setting("data.dataset") or run.setting("data.init_args.dataset") or DEFAULT_DATASET
+        data_dir = run.setting("data.data_dir") or run.setting("data.init_args.data_dir")
+        return str(dataset), None if data_dir is None else str(data_dir)
+
+    for dataset, data_dir in dict.fromkeys(data_of(r) for r in runs):
         directory = Path(data_dir if data_dir is not None else load_config(dataset)["output"])
         missing = [s for s in SPLITS if not split_path(directory, s).exists()]
         if missing:

@@ -202,7 +202,7 @@ def test_scale_within_the_targets(tiny):
 def test_fit_test_and_export_through_the_cli_on_tiny_cavity(tiny, tmp_path, model):
     config, _ = tiny
     data_dir = config["output"]
-    schedules = ["--model.init_args.eval_schedules", '["every:1", "every:2", "never"]'] if model == "ggns" else []
+    schedules = ["--evaluation.schedules", '["every:1", "every:2", "never"]'] if model == "ggns" else []
     checkpoint, metrics = fit_and_test_3d("cavity", model, data_dir, tmp_path, latent=8, blocks=1, extra=schedules)
     schedule = "every:2" if model == "ggns" else "never"
     main(["export", "--checkpoint", str(checkpoint), "--dataset", "cavity_tiny", "--data-dir", str(data_dir), "--split", "test",

@@ -26,7 +26,8 @@ from ggns.evaluation.callbacks import RolloutEvaluation
 from ggns.evaluation.evaluate import zero_motion_one_step_mse
 from ggns.evaluation.schedules import EveryK, Never
 from ggns.evaluation.selection import val_metric
-from ggns.models.simulators import GGNS, MGN, load_simulator
+from ggns.models.simulators import GGNS, MGN
+from ggns.models.loading import load_simulator
 from conftest import TINY12, make, normalizer_buffers
 
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -237,21 +238,28 @@ def test_cli_mgn_fit_and_test(cli_data, tmp_path, capsys):
             run_cli(["test", *cli_args(config, cli_data, tmp_path, "refused", "--ckpt_path", str(best), *extra)])
         assert exit_info.value.code == 2 and message in capsys.readouterr().err
         assert not list(tmp_path.glob("*/refused"))
-    # evaluation settings may change at test time, and are applied
+    # evaluation settings may change at test time, and are applied (they are the `evaluation` group's; the old
+    # model argument is refused naming its new place)
+    with pytest.raises(SystemExit) as exit_info:
+        run_cli(["test", *cli_args("mgn", cli_data, tmp_path, "old", "--ckpt_path", str(best),
+                                   "--model.init_args.test_m_plus_10", "false")])
+    assert "test_m_plus_10 is now --evaluation.m_plus_10" in capsys.readouterr().err
     run_cli(["test", *cli_args("mgn", cli_data, tmp_path, "no_m10", "--ckpt_path", str(best),
-                               "--model.init_args.test_m_plus_10", "false")])
+                               "--evaluation.m_plus_10", "false")])
     no_m10 = json.loads((tmp_path / "mgn" / "no_m10" / "test_metrics.json").read_text())
     assert "m10_mse" not in no_m10
     # a checkpoint of before the components (flat noise_std, lr, lr_decay_rate, type_partition, as the
-    # shipped simulators are) tests through the CLI with its hyperparameters converted: the same numbers
+    # shipped simulators are) and with the evaluation settings among its hyperparameters tests through the CLI
+    # with its hyperparameters converted: the same numbers
     checkpoint = torch.load(best, weights_only=True)
     hparams = checkpoint["hyper_parameters"]
     noise, schedule = hparams.pop("noise"), hparams.pop("lr_schedule")
     hparams.update(noise_std=noise["std"], noise_field_std=noise["field_std"], lr=schedule["lr"],
-                   lr_decay_rate=schedule["decay_rate"], type_partition=None)
+                   lr_decay_rate=schedule["decay_rate"], type_partition=None, eval_schedules=["every:1", "never"],
+                   test_m_plus_10=True, test_iou=True)
     torch.save(checkpoint, tmp_path / "flat.ckpt")
     run_cli(["test", *cli_args("mgn", cli_data, tmp_path, "flat", "--ckpt_path", str(tmp_path / "flat.ckpt"),
-                               "--model.init_args.test_m_plus_10", "false")])
+                               "--evaluation.m_plus_10", "false")])
     flat = json.loads((tmp_path / "mgn" / "flat" / "test_metrics.json").read_text())
     assert {k: v for k, v in flat.items() if k != "checkpoint"} == {k: v for k, v in no_m10.items() if k != "checkpoint"}
     # the run's saved config is the whole merged config (its `base` cleared) and parses to the same config
@@ -273,7 +281,7 @@ def test_configs_extend_their_base(tmp_path):
     cli = build_cli(["--config", "plate/ggns", "--trainer.logger", "false"], run=False)
     names = [type(c).__name__ + (f":{c.filename}" if type(c).__name__ == "ModelCheckpoint" else "")
              for c in cli.trainer.callbacks]
-    for wanted in ("RolloutWriter", "TestReport", "ModelCheckpoint:best-never-{step}", "ModelCheckpoint:last",
+    for wanted in ("RolloutWriter", "TestEvaluation", "ModelCheckpoint:best-never-{step}", "ModelCheckpoint:last",
                    "RolloutEvaluation", "ModelCheckpoint:best-k1-{step}", "RandomState"):
         assert sum(n == wanted for n in names) == 1, (wanted, names)
     (tmp_path / "mine.yaml").write_text("base: plate/mgn\ntrainer:\n  max_epochs: 3\n")

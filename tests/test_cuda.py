@@ -23,7 +23,9 @@ from ggns.data.module import WindowDataset, collate
 from ggns.data.schema import read_trajectories
 from ggns.evaluation.schedules import EveryK, Never
 from ggns.graphs.state import state_graph
-from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared, load_simulator
+from ggns.evaluation.callbacks import TestEvaluation
+from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared
+from ggns.models.loading import load_simulator
 from conftest import TINY12, eager_losses, make
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (scripts/gpu_check.sh)")
@@ -229,10 +231,11 @@ def test_a_fit_with_static_steps_then_a_test_in_one_process_with_workers_and_bf1
 
     data = SimulationDataModule(str(cli_data / TINY12), batch_size=2, generate_missing=False, num_workers=2,
                                 eval_batch_size=2)
-    model = make(GGNS, eval_schedules=("every:1", "never"), test_iou=False)  # capacities from every batch's graphs
+    model = make(GGNS)  # capacities from every batch's graphs
+    evaluation = TestEvaluation(schedules=("every:1", "never"), iou=False)
     trainer = pl.Trainer(max_steps=6, logger=False, enable_progress_bar=False, enable_model_summary=False,
                          limit_val_batches=0, log_every_n_steps=2, accelerator="gpu", devices=1,
-                         precision="bf16-mixed", callbacks=[StaticTraining(), StaticRollouts()],
+                         precision="bf16-mixed", callbacks=[StaticTraining(), StaticRollouts(), evaluation],
                          default_root_dir=tmp_path)
     trainer.fit(model, data)
     assert trainer.global_step == 6
@@ -240,7 +243,7 @@ def test_a_fit_with_static_steps_then_a_test_in_one_process_with_workers_and_bf1
     assert all(int(state["step"]) == 6 for state in optimizer.state.values())  # the recording's warm-up applied none
     assert math.isclose(float(optimizer.param_groups[0]["lr"]), model.lr_schedule.at(6), rel_tol=1e-6)
     trainer.test(model, data)
-    assert all(math.isfinite(s["mean"]) for s in model.test_results.values())
+    assert all(math.isfinite(s["mean"]) for s in evaluation.results.values())
 
 
 def _sync_warnings(caught) -> int:

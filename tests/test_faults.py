@@ -307,10 +307,10 @@ def _sweep_file(tmp_path: Path, data: Path) -> Path:
 
     tiny = {"data": {"dataset": str(data / TINY12), "data_dir": str(data), "generate_missing": False, "batch_size": 8,
                      "max_eval_trajectories": 2},
-            "model": {"init_args": {"latent": 16, "blocks": 2,
-                                    "test_m_plus_10": False}},  # one test part (never), one process fewer per test
+            "model": {"init_args": {"latent": 16, "blocks": 2}},
             "trainer": {"max_epochs": 2, "limit_train_batches": 2, "limit_val_batches": 1, "check_val_every_n_epoch": 2,
-                        "enable_progress_bar": False, "enable_model_summary": False}}
+                        "enable_progress_bar": False, "enable_model_summary": False},
+            "evaluation": {"m_plus_10": False}}  # one test part (never), one process fewer per test
     sweep = {"output": str(tmp_path / "sweep"), "seeds": [0], "parallel": 1, "overrides": tiny,
              "models": {"mgn": {"config": str(CONF_DIR / "plate" / "mgn.yaml")}}}
     tmp_path.mkdir(parents=True, exist_ok=True)

@@ -130,7 +130,8 @@ def test_two_tiny_variants_end_to_end_and_resume(cli_data, tmp_path):
     assert "| step | paper: rollout_mse_k1 |" in table and "decay: rollout_mse_never" in table
     assert "decay: rollout_mse_k1" not in table and len([l for l in table.splitlines() if l.startswith(("| 2 |", "| 4 |"))]) == 2
     hparams = [read_checkpoint(r.fit_dir / "checkpoints" / "last.ckpt")["hyper_parameters"] for r in runs]
-    assert [h["eval_schedules"] for h in hparams] == [["every:1", "every:2", "every:5", "every:10", "never"], ["never"]]
+    assert hparams[0]["point_probability"] > 0 and hparams[1]["point_probability"] == 0
+    assert not any(key in h for h in hparams for key in ("eval_schedules", "test_m_plus_10", "test_iou"))  # the callback's
     # the LearningRateMonitor of the CLI logged the scheduled lr of each of the 4 steps
     steps, _, lrs = read_scalars(runs[1].fit_dir)["train/lr"]
     assert steps.tolist() == [1, 2, 3, 4]
@@ -387,4 +388,7 @@ def test_every_variant_of_the_estimator_learning_files_parses(tmp_path):
             assert model.noise.field_decay_steps == (8000 if plate else 0)
             assert model.noise.field_wavelength == (4.0 if plate else 2.0)
             noise = float(run.model.split("noise_")[1]) if "estimator_noise" in run.model else 0.0
-            assert model.hparams.estimator_noise_std == noise
+            assert model.estimator_noise.field_std == noise and model.estimator_noise.std == 0
+            if noise:  # the smooth field of the model's own training noise, at mixed scales
+                assert model.estimator_noise.field_wavelength == model.noise.field_wavelength
+                assert model.estimator_noise.field_mixture

@@ -11,7 +11,8 @@ import torch
 
 from ggns.data.module import SimulationDataModule
 from ggns.models.lr_schedule import LRSchedule, scheduled_lr
-from ggns.models.simulators import GGNS, MGN, load_simulator
+from ggns.models.simulators import GGNS, MGN
+from ggns.models.loading import load_simulator
 
 SCHEDULE = dict(lr_schedule=LRSchedule(lr=1e-3, final=1e-4, decay_rate=0.5, decay_steps=2, warmup_steps=2))
 

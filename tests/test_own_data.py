@@ -21,7 +21,8 @@ from ggns.data.predictions import Predictions, read_predictions, write_predictio
 from ggns.data.schema import DatasetError, SplitReader, SplitWriter
 from ggns.evaluation.evaluate import split_trajectories
 from ggns.geometry import signed_volumes
-from ggns.models.simulators import GGNS, MGNM, load_simulator
+from ggns.models.simulators import GGNS, MGNM
+from ggns.models.loading import load_simulator
 from conftest import box_mesh, save_untrained
 
 pytestmark = pytest.mark.usefixtures("single_thread")

@@ -20,7 +20,7 @@ from ggns.data.generate import regenerate, trajectory_jobs
 from ggns.evaluation.schedules import parse_schedule
 from ggns.evaluation.selection import checkpoint_info
 from ggns.experiments.pretrain import load_spec
-from ggns.models.simulators import load_simulator
+from ggns.models.loading import load_simulator
 
 from conftest import TINY12
 
@@ -200,7 +200,7 @@ def test_a_checkpoint_that_would_run_code_is_refused_by_every_loader(registry, t
 def test_the_lightning_cli_tests_a_pretrained_name_and_refuses_other_scenes(registry, cli_data, tmp_path, capsys):
     base = ["test", "--config", str(CONF_DIR / "plate" / "ggns.yaml"), "--ckpt_path", "pretrained:tiny/ggns",
             "--trainer.logger.init_args.save_dir", str(tmp_path), "--trainer.enable_progress_bar", "false",
-            "--data.max_eval_trajectories", "2", "--model.init_args.test_m_plus_10", "false"]
+            "--data.max_eval_trajectories", "2", "--evaluation.m_plus_10", "false"]
     main([*base, "--data.dataset", str(cli_data / TINY12)])
     metrics = json.loads(next(tmp_path.rglob("test_metrics.json")).read_text())
     expected = pretrained.manifest("tiny/ggns")["test"]["metrics"]["rollout_mse_k1"]["mean"]

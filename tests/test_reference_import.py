@@ -302,4 +302,4 @@ def test_imported_tissue_trains_and_names_what_needs_cells(tmp_path, monkeypatch
         cli(tmp_path / "logs", "tissue", tmp_path / "data", "test", "--ckpt_path",
             str(run / "checkpoints" / "last.ckpt"))
     err = capsys.readouterr().err
-    assert exit_info.value.code == 2 and re.search("error: .*volume IoU needs tetrahedra .* --model.init_args.test_iou false", err)
+    assert exit_info.value.code == 2 and re.search("error: .*volume IoU needs tetrahedra .* --evaluation.iou false", err)

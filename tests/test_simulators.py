@@ -16,10 +16,11 @@ from ggns.data.module import SimulationDataModule, WindowDataset, collate
 from ggns.evaluation.evaluate import m_plus_10_profile, pooled_over
 from ggns.evaluation.metrics import m_plus_10_pooled_mse
 from ggns.evaluation.rollout import RolloutError, m_plus_10_rollouts, rollout
-from ggns.evaluation.schedules import EveryK, FirstM, Never
+from ggns.evaluation.schedules import PAPER_SCHEDULES, EveryK, FirstM, Never, effective_schedules
 from ggns.models.lr_schedule import LRSchedule
 from ggns.models.training_noise import TrainingNoise
-from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared, load_simulator
+from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared
+from ggns.models.loading import load_simulator, upgrade_hparams
 from conftest import T, first_graph, make, normalizer_buffers, quiet_trainer, save_untrained
 
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -63,7 +64,7 @@ def test_mgn_shared_is_the_ggns_core_on_mesh_and_collider_edges(val_batch):
     """The authors' plate MGN: GGNS's one-hot shared processor, no world edges, no points."""
     model, ggns = make(MGNShared), make(GGNS)
     assert model.processor == ggns.processor == "shared" and model.core.type_encoding == ggns.core.type_encoding
-    assert not model.uses_points and [str(s) for s in model.schedules] == ["never"]
+    assert not model.uses_points and [str(s) for s in effective_schedules(PAPER_SCHEDULES, model.uses_points)] == ["never"]
     graph = first_graph(model, val_batch, True)
     assert set(graph.node_types) == {"mesh", "collider"}
     assert ("mesh", "world", "mesh") not in graph.edge_types and ("collider", "near", "mesh") in graph.edge_types
@@ -504,10 +505,10 @@ def test_ggns_id_reads_the_material_from_points_only_and_never_from_the_label(va
 
 
 def test_ggns_id_estimator_noise_moves_only_the_estimators_mesh(val_batch, tiny_data_dir, tmp_path):
-    """`estimator_noise_std`: in training the estimator reads the sample's mesh moved by a smooth field (free
+    """`estimator_noise` (a `TrainingNoise`): in training the estimator reads the sample's mesh moved by a smooth field (free
     nodes only, same point clouds, edges rebuilt); the dynamics' sample, validation and rollouts are as
     without it. Trains through Lightning and survives a checkpoint round trip."""
-    model = make(GGNSID, statistics_batches=1, estimator_noise_std=0.05)
+    model = make(GGNSID, statistics_batches=1, estimator_noise={"std": 0.0, "field_std": 0.05, "field_mixture": True})
     data = SimulationDataModule("plate_tiny", data_dir=str(tiny_data_dir), batch_size=4, generate_missing=False)
     trainer = quiet_trainer(tmp_path)
     trainer.fit(model, data)
@@ -529,11 +530,17 @@ def test_ggns_id_estimator_noise_moves_only_the_estimators_mesh(val_batch, tiny_
     assert make(GGNSID).estimator_graph(graph, val_batch, 0) is graph  # off by default
     trainer.save_checkpoint(tmp_path / "id.ckpt")
     loaded = GGNSID.load_from_checkpoint(tmp_path / "id.ckpt", weights_only=True).eval()
-    assert loaded.hparams.estimator_noise_std == 0.05
+    assert loaded.estimator_noise == TrainingNoise(std=0.0, field_std=0.05, field_mixture=True)
+    # a checkpoint of before the component (`estimator_noise_std`) loads as the noise it was: the model's
+    # wavelength, mixed scales
+    hparams = dict(torch.load(tmp_path / "id.ckpt", weights_only=True)["hyper_parameters"])
+    hparams.pop("estimator_noise")
+    assert TrainingNoise.of(upgrade_hparams({**hparams, "estimator_noise_std": 0.05})["estimator_noise"]) == \
+        loaded.estimator_noise
     positions, _ = rollout(loaded.step, val_batch, EveryK(2), loaded.connectivity)
     assert torch.isfinite(positions).all()
-    with pytest.raises(ValueError, match="estimator_noise_std >= 0"):
-        make(GGNSID, estimator_noise_std=-0.1)
+    with pytest.raises(ValueError, match="field_std >= 0"):
+        make(GGNSID, estimator_noise={"field_std": -0.1})
 
 
 @pytest.mark.parametrize("cls", [GGNS, GGNSID, GGNSLSTM, MGNM])

@@ -20,6 +20,7 @@ from ggns.evaluation.rollout import RolloutError, one_step_predictions, rollout
 from ggns.evaluation.schedules import EveryK, Never, parse_schedule
 from ggns.graphs import search
 from ggns.graphs.search import compact, static_knn, static_radius
+from ggns.evaluation.callbacks import TestEvaluation
 from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, MGN, MGNM
 from ggns.models.speed import StaticRollouts, StaticTraining
 from ggns.models.static_training import StaticTrainStep, bucket
@@ -334,10 +335,11 @@ def test_a_fit_then_a_test_in_one_process_with_static_steps_workers_and_bf16(cli
     data = SimulationDataModule(str(cli_data / TINY12), batch_size=2, generate_missing=False, num_workers=1,
                                 eval_batch_size=2)
     # the statistics pass over every training batch: the static step's edge capacities start from its graphs
-    model = make(GGNS, eval_schedules=("every:1", "never"), test_iou=False, test_m_plus_10=False)
+    model = make(GGNS)
+    evaluation = TestEvaluation(schedules=("every:1", "never"), iou=False, m_plus_10=False)
     trainer = pl.Trainer(max_steps=4, logger=False, enable_progress_bar=False, enable_model_summary=False,
                          limit_val_batches=0, log_every_n_steps=2, accelerator="cpu", precision="bf16-mixed",
-                         callbacks=[StaticTraining(), StaticRollouts()], default_root_dir=tmp_path)
+                         callbacks=[StaticTraining(), StaticRollouts(), evaluation], default_root_dir=tmp_path)
     used = []
 
     class Used(pl.Callback):
@@ -354,8 +356,8 @@ def test_a_fit_then_a_test_in_one_process_with_static_steps_workers_and_bf16(cli
         assert all(int(state["step"]) == 4 for state in optimizer.state.values())  # 4 Adam steps, none skipped
         trainer.test(model, data)
     assert isinstance(model.rollout_step(), StaticStep)
-    assert set(model.test_results) >= {"rollout_mse_k1", "rollout_mse_never"}
-    assert all(torch.isfinite(torch.tensor(s["mean"])) for s in model.test_results.values())
+    assert set(evaluation.results) >= {"rollout_mse_k1", "rollout_mse_never"}
+    assert all(torch.isfinite(torch.tensor(s["mean"])) for s in evaluation.results.values())
 
 
 def test_the_eager_builder_works_without_torch_cluster(trajs, val_batch, monkeypatch):

@@ -163,8 +163,8 @@ def test_checkpoint_fallbacks_of_older_and_unvalidated_fits(tmp_path):
     assert (part.families, part.schedules, part.m_plus_10) == (("never", "m10", "one_step"), ("never",), True)
     assert part.test_dir == run.test_dir / "best-epoch=3"
     command = run.test_command(part)
-    assert command[-6:] == ["--ckpt_path", str(directory / "best-epoch=3.ckpt"), "--model.init_args.eval_schedules",
-                            '["never"]', "--model.init_args.test_m_plus_10", "true"]
+    assert command[-6:] == ["--ckpt_path", str(directory / "best-epoch=3.ckpt"), "--evaluation.schedules",
+                            '["never"]', "--evaluation.m_plus_10", "true"]
     # a run tested before per-family selection (its test_metrics.json names no checkpoints): the
     # summary shows the checkpoint it was tested with, and says so
     run.test_dir.mkdir()

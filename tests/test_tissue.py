@@ -125,7 +125,8 @@ def test_fit_and_test_through_the_cli_on_tiny_tissue(tiny, tmp_path, model):
 def test_per_type_ggnsid_fits_and_tests_on_tiny_tissue(tiny, tmp_path):
     """experiments/tissue_cpu/learning/tissue_cpu_m10.yaml's GGNSID on the tissue: the per-type processor and the material
     estimator train and roll out in 3D through the CLI, and the checkpoint loads back as GGNSID."""
-    from ggns.models.simulators import GGNSID, load_simulator
+    from ggns.models.simulators import GGNSID
+    from ggns.models.loading import load_simulator
 
     config, _ = tiny
     extra = ["--model.class_path", "ggns.models.simulators.GGNSID", "--model.init_args.processor", "per_type"]

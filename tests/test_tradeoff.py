@@ -13,7 +13,8 @@ from ggns.data.module import SimulationDataModule
 
 from ggns.bench.tradeoff import (COLUMNS, model_points, pareto_mask, pareto_plot,
                                        reference_substeps_for, simulator_points, tradeoff_csv)
-from ggns.models.simulators import GGNS, MGN, load_simulator
+from ggns.models.simulators import GGNS, MGN
+from ggns.models.loading import load_simulator
 
 
 @pytest.fixture(scope="module")

@@ -5,15 +5,15 @@ Any `GraphSimulator` subclass is a model (`--model ggns.models.simulators.GGNS` 
 (so `${...}` interpolation works), the run's full config is saved next to its TensorBoard logs
 (runs without a logger save none),
 and `--ckpt_path` resumes a fit or picks the checkpoint to test (the model then takes the
-checkpoint's hyperparameters, except the evaluation settings `EVALUATION_ARGS`); `--ckpt_path
+checkpoint's hyperparameters; the test's settings are the `evaluation:` group's, `TestEvaluation`); `--ckpt_path
 pretrained:plate/ggns` (or the shipped file's path) takes a shipped simulator, verified against its
 manifest and refused for data of another scene (`ggns.pretrained`). Nothing given is
 silently dropped for the checkpoint's: a checkpoint of another model class than the config's is
 refused, and so is a model argument given on the command line that the checkpoint would replace
 by a different value (`CheckpointMismatchError`). A trainer with a logger also logs the learning
 rate of every optimizer step as `train/lr` (Lightning's LearningRateMonitor); every fit keeps its random
-generators' states in its checkpoints (`RandomState`) and every test writes its report (`TestReport`),
-unless the config already has them. Model arguments of older versions (`--model.init_args.noise_std`,
+generators' states in its checkpoints (`RandomState`, unless the config already has it) and every test
+computes and writes its metrics (`TestEvaluation`, configured by the `evaluation:` group). Model arguments of older versions (`--model.init_args.noise_std`,
 `lr_decay_rate`, `type_partition`, ...) are refused naming their new place (`RENAMED_ARGS`), and
 checkpoints written with them are converted when read (`upgrade_hparams`). A fit stopped by SIGTERM
 (a cluster's pre-emption, `kill`) saves its state to last.ckpt before it ends (`LastCheckpointOnSigterm`),
@@ -34,15 +34,11 @@ from pytorch_lightning.utilities.exceptions import SIGTERMException
 from .checkpoints import check_format, read_checkpoint
 from .config import base_chain, config_file, load_config
 from .data.module import SimulationDataModule
-from .evaluation.callbacks import TestReport
+from .evaluation.callbacks import TestEvaluation
 from .models.random_state import RandomState
-from .models.simulators import RENAMED_ARGS, GraphSimulator, refuse_distributed, upgrade_hparams
+from .models.graph_simulator import GraphSimulator, refuse_distributed
+from .models.loading import RENAMED_ARGS, upgrade_hparams
 from .pretrained import PREFIX, check_data, checkpoint_path, shipped_name
-
-# Evaluation settings, not part of a trained model: with --ckpt_path they still come from the command
-# line and config (Lightning replaces every other model argument by the checkpoint's hyperparameters).
-EVALUATION_ARGS = ("eval_schedules", "test_m_plus_10", "test_iou")
-
 
 class CheckpointMismatchError(ValueError):
     """--ckpt_path names a checkpoint that contradicts the model the config or the command line asks for."""
@@ -53,7 +49,7 @@ def refuse_renamed_args(args: list[str]) -> None:
     ValueError naming where it is now (`RENAMED_ARGS`)."""
     old = sorted(command_line_model_args(args) & set(RENAMED_ARGS))
     if old:
-        raise ValueError("model arguments renamed when the simulators were built from parts: " +
+        raise ValueError("model arguments of an older version: " +
                          "; ".join(f"{name} is now {RENAMED_ARGS[name]}" for name in old) +
                          " (e.g. --model.init_args.noise.std 0.01, --model.init_args.lr_schedule.lr 1e-3)")
 
@@ -98,9 +94,13 @@ class SimulatorCLI(LightningCLI):
         trainer = super().instantiate_trainer(**kwargs)
         if trainer.loggers and not any(isinstance(c, LearningRateMonitor) for c in trainer.callbacks):
             trainer.callbacks.append(LearningRateMonitor(logging_interval="step"))
-        for kind in (RandomState, TestReport):
-            if not any(isinstance(c, kind) for c in trainer.callbacks):
-                trainer.callbacks.append(kind())
+        if not any(isinstance(c, RandomState) for c in trainer.callbacks):
+            trainer.callbacks.append(RandomState())
+        # the `evaluation` group's TestEvaluation is the last one; a config's own (older configs list
+        # TestReport, its former name) would compute the test metrics a second time
+        evaluations = [c for c in trainer.callbacks if isinstance(c, TestEvaluation)]
+        for callback in evaluations[:-1]:
+            trainer.callbacks.remove(callback)
         # last.ckpt after every other checkpoint of the same hook, so that it holds their newest states (a
         # model config appends its best-k1 checkpoint after the base's `last`)
         for callback in [c for c in trainer.callbacks if isinstance(c, ModelCheckpoint) and c.filename == "last"]:
@@ -110,6 +110,8 @@ class SimulatorCLI(LightningCLI):
         return trainer
 
     def add_arguments_to_parser(self, parser) -> None:
+        # the test's schedules, m+10 and IoU: `evaluation:` in a config, `--evaluation.schedules` on the command line
+        parser.add_lightning_class_args(TestEvaluation, "evaluation")
         parser.add_argument("--base", type=str | None, default=None,
                             help="in a config file: the config it extends (a path relative to it, or a shipped "
                                  "config such as `trainer`), applied before it (ggns.cli.config_bases)")
@@ -133,8 +135,8 @@ class SimulatorCLI(LightningCLI):
         super().parse_arguments(parser, args)
 
     def _parse_ckpt_path(self) -> None:
-        """Lightning's: the checkpoint's hyperparameters replace the model arguments, except
-        EVALUATION_ARGS; refused when the checkpoint's model class differs from the config's, or
+        """Lightning's: the checkpoint's hyperparameters replace the model arguments (the evaluation
+        settings are the `evaluation` group's, not the model's); refused when the checkpoint's model class differs from the config's, or
         when it would replace a model argument given on the command line by another value."""
         subcommand = self.config.get("subcommand")
         if not subcommand or not self.config[subcommand].get("ckpt_path"):
@@ -144,8 +146,7 @@ class SimulatorCLI(LightningCLI):
         init_args = model.get("init_args")
         asked_class = model.get("class_path")
         given = {k: init_args[k] for k in command_line_model_args(getattr(self, "_given_args", []))
-                 if init_args is not None and k in init_args and k not in EVALUATION_ARGS}
-        kept = {k: init_args[k] for k in EVALUATION_ARGS if init_args is not None and k in init_args}
+                 if init_args is not None and k in init_args}
         self._parse_checkpoint_hparams(subcommand)
         model = self.config[subcommand].model
         path = self.config[subcommand].ckpt_path
@@ -159,9 +160,7 @@ class SimulatorCLI(LightningCLI):
                 f"{path} was trained with other values of the model arguments given on the command line, which "
                 "the checkpoint's would replace: " + ", ".join(f"{k}: given {a!r}, checkpoint {b!r}"
                                                                for k, (a, b) in shadowed.items()) +
-                f" (only the evaluation settings {list(EVALUATION_ARGS)} can change at test time)")
-        for key, value in kept.items():
-            self.config[subcommand].model.init_args[key] = value
+                " (the evaluation settings, --evaluation.*, are the ones that change at test time)")
 
     def _parse_checkpoint_hparams(self, subcommand: str) -> None:
         """Lightning's `_parse_ckpt_path` on the checkpoint's hyperparameters as this version's init

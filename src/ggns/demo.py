@@ -33,7 +33,7 @@ from .evaluation.pictures import error_curves, rollout_animation, rollout_pictur
 from .evaluation.schedules import Never, parse_schedule  # noqa: E402
 from .experiments.curves import read_scalars  # noqa: E402
 from .experiments.paper import LABELS, paper_figures  # noqa: E402
-from .pretrained import check_data, load  # noqa: E402
+from .pretrained import check_data, load, training_budget  # noqa: E402
 from .reports import markdown_table, write_json, write_text  # noqa: E402
 from .viz import plot_error_over_time, save_figure  # noqa: E402
 
@@ -90,8 +90,14 @@ def results_table(spec: dict, results: dict) -> str:
                           rows)
 
 
-def claim(results: dict) -> tuple[float | None, str]:
-    """GGNS k=1 against MGN (full rollout MSE): (ratio, one sentence)."""
+def claim(results: dict, budgets: dict | None = None) -> tuple[float | None, str]:
+    """GGNS k=1 against MGN (full rollout MSE): (ratio, one sentence naming each model's training budget in
+    minutes, `budgets`: key -> minutes or None, when given)."""
+    budgets = budgets or {}
+
+    def given(key: str) -> str:
+        return f", trained {budgets[key]:.0f} min" if budgets.get(key) is not None else ""
+
     ggns = results.get("ggns", {}).get("rollout_mse_k1", {}).get("mean")
     mgn = results.get("mgn", {}).get("rollout_mse_never", {}).get("mean")
     mgn_m = results.get("mgn_m", {}).get("rollout_mse_never", {}).get("mean")
@@ -99,9 +105,11 @@ def claim(results: dict) -> tuple[float | None, str]:
         return None, "the claim cannot be checked: GGNS k=1 or MGN missing"
     ratio = mgn / ggns
     text = (f"GGNS with a point cloud every step (k=1) is **{_relation(ggns, mgn)} MGN** "
-            f"({ggns:.2e} against {mgn:.2e}): the claim (at least 10x below) **{'holds' if ratio >= 10 else 'fails'}** here")
+            f"({ggns:.2e}{given('ggns')}, against {mgn:.2e}{given('mgn')}): the claim (at least 10x below) "
+            f"**{'holds' if ratio >= 10 else 'fails'}** here")
     if mgn_m is not None:
-        text += f"; against MGN(M), which is told the material, GGNS k=1 is {_relation(ggns, mgn_m)} it ({mgn_m:.2e})"
+        text += (f"; against MGN(M), which is told the material, GGNS k=1 is {_relation(ggns, mgn_m)} it "
+                 f"({mgn_m:.2e}{given('mgn_m')})")
     return ratio, text + "."
 
 
@@ -214,7 +222,8 @@ def run_demo(task: str = "plate", output: str | Path = "lightning_logs/demo", mi
     module.prepare_data()
     print(f"[2/4] pretrained {', '.join(spec['pretrained'].values())} on the test split")
     models, results, _ = evaluate_pretrained(spec, module)
-    ratio, sentence = claim(results)
+    ratio, sentence = claim(results, {key: training_budget(model.manifest)["max_time_minutes"]
+                                      for key, model in models.items()})
     print("      " + sentence.replace("**", ""))
     print("[3/4] pictures")
     figures = pictures(spec, models, module, output)
@@ -250,13 +259,16 @@ def write_report(spec: dict, task: str, results: dict, sentence: str, figures: l
              "trajectories, in squared task-space units; MGN never sees point clouds. The paper's columns are its "
              "test figures (full rollouts read off its bar charts, `-` where it gives none).", "",
              results_table(spec, results), ""]
-    lines += ["| simulator | trained | optimizer steps | parameters | manifest test (same trajectories) |",
-              "|---|---|---|---|---|"]
+    lines += ["| simulator | trained | budget (wall clock) | optimizer steps of the file | parameters | "
+              "manifest test (same trajectories) |",
+              "|---|---|---|---|---|---|"]
     for key, model in models.items():
         m = model.manifest
         family = m["source"]["family"]
         metric = f"rollout_mse_{family}"
+        budget = training_budget(m)["max_time_minutes"]
         lines.append(f"| `{m['name']}` | {m['trained_by']['fit_started']} on `{m['data']['preset']}` | "
+                     f"{f'{budget:.0f} min' if budget is not None else '-'} | "
                      f"{m['source']['global_step']} | {m['parameters']} | {metric} "
                      f"{m['test']['metrics'][metric]['mean']:.3e} on {m['test']['trajectories']} |")
     lines += ["", *(f"![{p.stem}]({p.name})" for p in figures if p.suffix == ".png" and p.stem != "learning"),

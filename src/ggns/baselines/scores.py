@@ -26,7 +26,7 @@ import torch
 from ..batch import TrajectoryBatch
 from ..evaluation.evaluate import MetricTable, zero_motion_one_step_mse
 from ..evaluation.metrics import batch_iou, rollout_mse, rollout_volume_iou
-from ..evaluation.schedules import parse_schedule
+from ..evaluation.schedules import PAPER_SCHEDULES, effective_schedules, parse_schedule
 from . import ALPHA_SHAPES, GENERATED_MESH_FILE, ROWS, STATIC  # noqa: F401 (importable from here as before)
 from .alpha_shapes import trajectory_alpha_iou
 from .initial_mesh import generated_trajectory, initial_mesh_rollout_ious
@@ -67,11 +67,12 @@ def static_metrics(trajectories) -> dict[str, dict[str, float]]:
 
 def generated_mesh_metrics(model, trajectories, schedules=None) -> dict[str, dict[str, float]]:
     """IoU of `model`'s rollouts from meshes generated from each trajectory's first point cloud,
-    under each schedule (default: the model's `eval_schedules`), batched over trajectories."""
+    under each schedule (default: the paper's, `PAPER_SCHEDULES`, as the model runs them), batched over
+    trajectories."""
     generated = [generated_trajectory(traj) for traj in trajectories]
     values: dict[str, list[float]] = {}
-    for text in (model.hparams.eval_schedules if schedules is None else schedules):
-        schedule = parse_schedule(text) if isinstance(text, str) else text
+    for text in (effective_schedules(PAPER_SCHEDULES, model.uses_points) if schedules is None else schedules):
+        schedule = parse_schedule(text)
         ious = initial_mesh_rollout_ious(model, trajectories, schedule, generated)
         values[f"generated_mesh_iou_{schedule.key}"] = [float(iou[1:].mean()) for iou in ious]
     return summarize_values(values)

@@ -2,8 +2,9 @@
 checkpoint selection per metric family, `evaluation.selection`) and rollout pictures in
 TensorBoard. Both run at the end of every validation epoch (set how often with the Trainer's
 `check_val_every_n_epoch`), never during the sanity check, and roll out through the module's
-`evaluate` / `rollout`, i.e. the one engine. `TestReport` writes a `test`'s metrics and names the
-checkpoint it evaluated; `RolloutWriter` writes the rollouts of `predict` as a predictions file.
+`evaluate_model` / `rollout`, i.e. the one engine. `TestEvaluation` makes a `test`'s metrics and writes
+them naming the checkpoint it evaluated; `RolloutWriter` writes the rollouts of `predict` as a predictions
+file. The model knows none of them: it exposes its step and its rollout.
 """
 from __future__ import annotations
 
@@ -15,7 +16,6 @@ from typing import Sequence
 
 import pytorch_lightning as pl
 import torch
-from pytorch_lightning.callbacks import BasePredictionWriter
 from pytorch_lightning.loggers import TensorBoardLogger
 from torch import Tensor
 
@@ -25,9 +25,9 @@ from ..data.predictions import Predictions, write_predictions
 from ..data.schema import SplitReader
 from ..reports import metrics_markdown, write_json, write_text
 from ..viz import figure_to_image
-from .evaluate import zero_motion_one_step_mse
+from .evaluate import MetricTable, evaluate_model, zero_motion_one_step_mse
 from .pictures import rollout_picture
-from .schedules import EveryK, Never, Schedule, effective_schedules, parse_schedule
+from .schedules import PAPER_SCHEDULES, EveryK, Never, Schedule, effective_schedule, effective_schedules, parse_schedule
 from .selection import CHECKPOINT_KEY, M10, checkpoint_info, describe, val_metric
 
 
@@ -61,7 +61,7 @@ def _mean_over_processes(trainer: pl.Trainer, values: dict[str, Tensor]) -> dict
 class RolloutEvaluation(pl.Callback):
     """Validation scalars for checkpoint selection, one per metric family (`evaluation.selection`),
     from the first `num_trajectories` trajectories of `split` rolled out as one batch through the
-    module's `evaluate`:
+    engine (`evaluate_model`):
 
         val/one_step_mse              teacher-forced next-step MSE
         val/one_step_mse_zero_motion  the same for predicting no motion (x_{t+1} = x_t); computed once
@@ -116,7 +116,7 @@ class RolloutEvaluation(pl.Callback):
             return
         start = time.perf_counter()
         batch = _eval_batch(trainer, self.split, self.num_trajectories, self._cache)
-        metrics = pl_module.evaluate(batch, self.schedules(pl_module), m_plus_10=self.m_plus_10, iou=False,
+        metrics = evaluate_model(pl_module, batch, self.schedules(pl_module), m_plus_10=self.m_plus_10, iou=False,
                                      m_plus_10_stride=self.m_plus_10_stride)
         metrics = {f"val/{name}": v for name, v in metrics.items()}
         if "zero_motion" not in self._cache:
@@ -133,27 +133,52 @@ class RolloutEvaluation(pl.Callback):
             pl_module.log(name, value, batch_size=batch.num_graphs)
 
 
-class TestReport(pl.Callback):
-    """Writes a `test`'s metrics beside its logs: test_metrics.md (the table) and test_metrics.json (the
-    module's `test_results`: metric -> mean, std, ... over the test trajectories), both naming the
-    checkpoint that was evaluated (`selection.checkpoint_info`: path, global step, epoch and, for a
-    best-* checkpoint, the scalar it was selected on; under "checkpoint" in the JSON), in `trainer.log_dir`
-    (the logger's folder, else the trainer's default_root_dir). `ggns.cli` adds it to every run that has none."""
+class TestEvaluation(pl.Callback):
+    """The test metrics of `python -m ggns test` (`--evaluation.*`, the CLI's `evaluation:` group): every
+    test batch is rolled out under each schedule of `schedules` (the model's effective ones: a model
+    without point clouds gets "never" once) through `evaluate_model`, with the m+10-step error if
+    `m_plus_10` and the IoU if `iou` (2D: areas; 3D: volumes, every 10th state); the one-step MSE is
+    always computed. At the end of the test each metric's mean over the test trajectories is logged as
+    `test/<name>`, the table printed, and test_metrics.md and test_metrics.json (metric -> mean, std,
+    count) written in `trainer.log_dir` (the logger's folder, else the trainer's default_root_dir), both
+    naming the checkpoint that was evaluated (`selection.checkpoint_info`: path, global step, epoch and,
+    for a best-* checkpoint, the scalar it was selected on; under "checkpoint" in the JSON). `results`
+    holds the summary afterwards."""
+
+    def __init__(self, schedules: Sequence[str] = PAPER_SCHEDULES, m_plus_10: bool = True, iou: bool = True):
+        self.schedules = [parse_schedule(s) for s in schedules]  # none: the one-step (and m+10) metrics alone
+        self.m_plus_10, self.iou = m_plus_10, iou
+        self.results: dict | None = None
+        self._table: MetricTable | None = None
+
+    def on_test_epoch_start(self, trainer: pl.Trainer, pl_module) -> None:
+        self._table, self.results = MetricTable(), None
+
+    def on_test_batch_end(self, trainer: pl.Trainer, pl_module, outputs, batch, batch_idx: int,
+                          dataloader_idx: int = 0) -> None:
+        self._table.add(evaluate_model(pl_module, batch, effective_schedules(self.schedules, pl_module.uses_points),
+                                       m_plus_10=self.m_plus_10, iou=self.iou))
+
+    def on_test_epoch_end(self, trainer: pl.Trainer, pl_module) -> None:
+        self.results = self._table.summary()
+        for name, s in self.results.items():
+            pl_module.log(f"test/{name}", s["mean"])
 
     def on_test_end(self, trainer: pl.Trainer, pl_module) -> None:
-        summary = getattr(pl_module, "test_results", None)
-        if not trainer.is_global_zero or summary is None:
+        if not trainer.is_global_zero or self.results is None:
             return
+        title = f"{type(pl_module).__name__} test metrics"
+        print("\n" + metrics_markdown(self.results, title))
         info = checkpoint_info(trainer.ckpt_path) if trainer.ckpt_path else None
         line = f"tested checkpoint: {describe(info)}" + (f", {info['path']}" if info else "")
         print(line)
         directory = Path(trainer.log_dir or ".")
-        write_text(directory / "test_metrics.md",
-                   metrics_markdown(summary, f"{type(pl_module).__name__} test metrics") + "\n" + line + "\n")
-        write_json(directory / "test_metrics.json", {**summary, CHECKPOINT_KEY: info})
+        write_text(directory / "test_metrics.md", metrics_markdown(self.results, title) + "\n" + line + "\n")
+        write_json(directory / "test_metrics.json", {**self.results, CHECKPOINT_KEY: info})
 
 
-TestedCheckpoint = TestReport  # its name in configs written before it wrote the whole report
+# their names in configs written before the test metrics moved from the model into the callback
+TestReport = TestedCheckpoint = TestEvaluation
 
 
 class RolloutPictures(pl.Callback):
@@ -195,16 +220,18 @@ class RolloutPictures(pl.Callback):
                                     trainer.global_step, dataformats="HWC")
 
 
-class RolloutWriter(BasePredictionWriter):
-    """Writes what `predict` returns (per batch: the schedule, rollout positions [T, sumN, d] and the
-    node offsets of its trajectories) as a predictions file (`ggns.data.predictions`, documented in
-    docs/dataset_format.md) to `<log dir>/<filename>`: each rollout beside a copy of its test
-    trajectory, with the checkpoint (`--ckpt_path`) and its sha256, the model class, the schedule and
-    the test split file. An existing file is refused unless `overwrite`."""
+class RolloutWriter(pl.Callback):
+    """The rollouts of `predict`: every trajectory of the test split rolled out from its first state under
+    `schedule` (the model's effective one: "never" for a model without point clouds), written as a
+    predictions file (`ggns.data.predictions`, documented in docs/dataset_format.md) to
+    `<log dir>/<filename>`: each rollout beside a copy of its test trajectory, with the checkpoint
+    (`--ckpt_path`) and its sha256, the model class, the schedule and the test split file. An existing
+    file is refused (before any rollout) unless `overwrite`."""
 
-    def __init__(self, filename: str = "predictions.h5", overwrite: bool = False):
-        super().__init__(write_interval="epoch")
+    def __init__(self, filename: str = "predictions.h5", overwrite: bool = False, schedule: str = "every:1"):
         self.filename, self.overwrite = filename, overwrite
+        self.schedule = parse_schedule(schedule)
+        self._positions: list = []
 
     def path(self, trainer: pl.Trainer) -> Path:
         return Path(trainer.log_dir or ".") / self.filename
@@ -212,21 +239,25 @@ class RolloutWriter(BasePredictionWriter):
     def on_predict_start(self, trainer: pl.Trainer, pl_module) -> None:
         if self.path(trainer).exists() and not self.overwrite:  # refused before the rollouts, not after
             raise FileExistsError(f"{self.path(trainer)}: already exists (RolloutWriter overwrite=True replaces it)")
+        self._positions = []
 
-    def write_on_epoch_end(self, trainer: pl.Trainer, pl_module, predictions, batch_indices) -> None:
+    def on_predict_batch_end(self, trainer: pl.Trainer, pl_module, outputs, batch, batch_idx: int,
+                             dataloader_idx: int = 0) -> None:
+        plan = effective_schedule(self.schedule, pl_module.uses_points)
+        positions = pl_module.rollout(batch, plan).cpu()
+        self._positions += [positions[:, a:b].numpy() for a, b in zip(batch.node_offsets[:-1], batch.node_offsets[1:])]
+
+    def on_predict_end(self, trainer: pl.Trainer, pl_module) -> None:
         datamodule = trainer.datamodule
         inputs = datamodule.trajectories("test")
-        positions = [p["positions"][:, a:b].numpy() for p in predictions
-                     for a, b in zip(p["node_offsets"][:-1], p["node_offsets"][1:])]
-        if len(positions) != len(inputs):
-            raise RuntimeError(f"RolloutWriter: {len(positions)} rollouts for {len(inputs)} test trajectories")
+        if len(self._positions) != len(inputs):
+            raise RuntimeError(f"RolloutWriter: {len(self._positions)} rollouts for {len(inputs)} test trajectories")
         with SplitReader(datamodule.path("test")) as split:
             scene = split.scene
         checkpoint = str(trainer.ckpt_path or "")
         path = write_predictions(self.path(trainer), Predictions(
-            positions=positions, inputs=inputs, model_class=type(pl_module).__name__,
-            schedule=predictions[0]["schedule"], checkpoint=checkpoint,
+            positions=self._positions, inputs=inputs, model_class=type(pl_module).__name__,
+            schedule=str(effective_schedule(self.schedule, pl_module.uses_points)), checkpoint=checkpoint,
             checkpoint_sha256=sha256(checkpoint) if checkpoint else "",
             input_file=str(Path(datamodule.path("test")).resolve()), scene=scene), overwrite=self.overwrite)
         print(f"wrote {path}")
-

@@ -28,7 +28,7 @@ from ..batch import TrajectoryBatch
 from .metrics import (batch_iou, m_plus_10_mse, m_plus_10_pooled_mse, m_plus_10_starts, one_step_mse, rollout_mse,
                       rollout_volume_iou)
 from .rollout import StepFn, m_plus_10_rollouts, one_step_predictions, rollout
-from .schedules import EveryK, Never, Schedule
+from .schedules import PAPER_SCHEDULES, EveryK, Never, Schedule, effective_schedule, effective_schedules, parse_schedule
 
 def split_trajectories(positions: Tensor, batch: TrajectoryBatch) -> list[Tensor]:
     """[T, sumN, d] -> B tensors [1, T, N_b, d] (the metrics' layout), on the CPU."""
@@ -84,6 +84,30 @@ def evaluate_batch(step_fn: StepFn, batch: TrajectoryBatch, connectivity: Connec
 
 
 @torch.no_grad()
+def evaluate_model(model, batch: TrajectoryBatch, schedules=None, **kwargs) -> dict[str, Tensor]:
+    """Per-trajectory paper metrics of a simulator (`GraphSimulator`) on `batch`, through its rollout step
+    (`evaluate_batch`).
+
+    Args:
+        model: the simulator (its `rollout_step`, `connectivity`, `with_material`, `uses_points`).
+        batch: B trajectories of T states each (`TrajectoryBatch.from_trajectories`).
+        schedules: point-cloud schedules of the full rollouts (`Schedule` objects, or their text forms);
+            None: the paper's (`PAPER_SCHEDULES`) as the model runs them (`effective_schedules`: "never"
+            alone for a model without point clouds).
+        **kwargs: `evaluate_batch`'s options (`m_plus_10`, `iou`, `m_plus_10_stride`, ...).
+
+    Returns:
+        metric name (`one_step_mse`, `rollout_mse_k1`, `rollout_iou_k1`, ..., `rollout_mse_never`,
+        `m10_mse` when computed) -> a [B] tensor, one value per trajectory (MSE in squared task-space units).
+    """
+    schedules = (effective_schedules(PAPER_SCHEDULES, model.uses_points) if schedules is None
+                 else [parse_schedule(s) for s in schedules])
+    one_step = effective_schedule(EveryK(1), model.uses_points)
+    with torch.no_grad():
+        return evaluate_batch(model.rollout_step(), batch, model.connectivity, schedules,
+                              with_material=model.with_material, one_step_schedule=one_step, **kwargs)
+
+
 def m_plus_10_profile(model, batch: TrajectoryBatch, starts: list[int], horizon: int = 10) -> list[dict]:
     """Where a model's m+10 error comes from, per start m (`python -m ggns diagnose --m-plus-10-stride`):
     {"m", "m10_mse": the error at S_{m+horizon} after m point clouds and `horizon` blind steps (mean

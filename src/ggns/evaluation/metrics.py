@@ -295,7 +295,7 @@ def tet_mesh_iou(pred_nodes, true_nodes, cells, method: str = "auto", samples: i
     cells = check_cells(cells, len(pred), corners=4)
     if not len(cells):
         raise ValueError("volume IoU needs tetrahedra and this mesh has none (the authors' 3D datasets hold no "
-                         "volume cells, docs/dataset_format.md): test without it, --model.init_args.test_iou false")
+                         "volume cells, docs/dataset_format.md): test without it, --evaluation.iou false")
     pred, true = pred.to(torch.float64).numpy(), true.to(torch.float64).numpy()
     reason = "requested"
     if method != "sampled":

@@ -1,6 +1,6 @@
 """Rollouts of whole trajectories for a predictions file (`python -m ggns rollout`, notebooks): the
 check that a model fits the data (`check_model_fits`) and the batched rollouts of a list of
-trajectories through the model's `rollout`, i.e. the one engine (`rollout_trajectories`).
+trajectories through the model's rollout step and the one engine (`evaluation.rollout`, `rollout_trajectories`).
 
 A model's task is read from its connectivity preset's name (`plate_full_graph` -> plate,
 `tissue_mgn` -> tissue), which every config of conf/plate and conf/tissue follows.
@@ -11,11 +11,13 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from ..batch import TrajectoryBatch
 from ..scenes import SCENES
 from ..trajectory import Trajectory
 from .evaluate import split_trajectories
+from .rollout import rollout
 from .schedules import Schedule, effective_schedule
 
 
@@ -64,6 +66,8 @@ def rollout_trajectories(model, trajectories: Sequence[Trajectory], schedule: Sc
                and trajectories[stop].num_steps == trajectories[start].num_steps):
             stop += 1
         batch = TrajectoryBatch.from_trajectories(list(trajectories[start:stop]), device=model.device)
-        out += [x[0].numpy() for x in split_trajectories(model.rollout(batch, plan), batch)]
+        with torch.no_grad():
+            positions = rollout(model.rollout_step(), batch, plan, model.connectivity, model.with_material)[0]
+        out += [x[0].numpy() for x in split_trajectories(positions, batch)]
         start = stop
     return out

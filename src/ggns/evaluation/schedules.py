@@ -119,6 +119,10 @@ def parse_schedule(text: str | Schedule) -> Schedule:
     )
 
 
+# the paper's test rollouts: a point cloud every 1, 2, 5 and 10 steps, and never (`TestEvaluation`'s default)
+PAPER_SCHEDULES = ("every:1", "every:2", "every:5", "every:10", "never")
+
+
 def effective_schedule(schedule: Schedule | str, uses_points: bool) -> Schedule:
     """The schedule a model really runs: `schedule` for a model with point clouds, `Never()` for one
     without (it never sees a point cloud, whatever the schedule says)."""

@@ -25,9 +25,9 @@ from ..checkpoints import CHECKPOINT_FORMAT, FORMAT_KEY, read_checkpoint, sha256
 from ..config import CONF_DIR, command_line
 from ..data.module import SimulationDataModule
 from ..data.schema import SCHEMA_VERSION, SplitReader, content_hash
-from ..evaluation.evaluate import MetricTable
+from ..evaluation.evaluate import MetricTable, evaluate_model
 from ..evaluation.selection import checkpoint_glob, checkpoint_info
-from ..models.simulators import load_simulator
+from ..models.loading import load_simulator
 from .. import pretrained
 from ..reports import write_json
 from .curves import read_scalars
@@ -110,7 +110,7 @@ def test_metrics(model, data: SimulationDataModule, count: int) -> dict:
     {"trajectories", "seconds", "metrics": {name: {mean, std, count}}, "per_trajectory": {name: [..]}}."""
     trajectories = data.trajectories("test")[:count]
     start = time.perf_counter()
-    per_trajectory = model.evaluate(TrajectoryBatch.from_trajectories(trajectories), m_plus_10=True, iou=True)
+    per_trajectory = evaluate_model(model, TrajectoryBatch.from_trajectories(trajectories), m_plus_10=True, iou=True)
     table = MetricTable()
     table.add(per_trajectory)
     return {"trajectories": len(trajectories), "seconds": round(time.perf_counter() - start, 1),

@@ -47,7 +47,7 @@ stores them beside its runs. It is configured by the sweep file's optional `base
       alpha_shapes: true
       static: true
       initial_mesh: [ggns, mgn] # sweep models rolled out from the generated mesh, each under its
-                                # own evaluation schedules (the model's `eval_schedules`), each
+                                # own test schedules (its fit's `evaluation.schedules`), each
                                 # schedule with the checkpoint its family was tested with
 
 Existing result files are kept (an interrupted sweep resumes); delete them to recompute.
@@ -69,7 +69,7 @@ from ..reports import markdown_table, metrics_markdown, write_json, write_text
 from ..config import (LIGHTNING_KEYS, command_line, config_file, load_config, load_layered, merge_overrides,
                       old_form_error, resolve_preset, settings)
 from ..data import DEFAULT_DATASET, SPLITS, split_path
-from ..evaluation.schedules import parse_schedule
+from ..evaluation.schedules import PAPER_SCHEDULES, effective_schedules, parse_schedule
 from ..evaluation.selection import (CHECKPOINT_KEY, CHECKPOINTS_KEY, FAMILY_CHECKPOINT, M10, ONE_STEP, candidates,
                                     checkpoint_glob, checkpoint_info, describe, metric_family)
 from .aggregate import RunResult, aggregate, load_run, normalized_benefit, to_csv, to_markdown
@@ -157,19 +157,33 @@ class Run(_Tested):
     def test_command(self, part: TestPart) -> list[str]:
         version = f"seed_{self.seed}_test/{part.test_dir.name}"
         return self._cli("test", version) + [
-            "--ckpt_path", str(part.checkpoint), "--model.init_args.eval_schedules", json.dumps(list(part.schedules)),
-            "--model.init_args.test_m_plus_10", str(part.m_plus_10).lower()]
+            "--ckpt_path", str(part.checkpoint), "--evaluation.schedules", json.dumps(list(part.schedules)),
+            "--evaluation.m_plus_10", str(part.m_plus_10).lower()]
 
     def _eval_settings(self) -> tuple[list[str], bool]:
-        """The fit's test settings from its checkpoint's hyperparameters: (eval_schedules, test_m_plus_10)."""
+        """The run's test settings, (schedules, m_plus_10): its fit's `evaluation:` group (in the config.yaml
+        the fit saved beside its logs; fits from before the group: their checkpoint's `eval_schedules` and
+        `test_m_plus_10` hyperparameters; neither: `TestEvaluation`'s defaults), as the model's effective
+        schedules (a model without point clouds: "never" once)."""
         from ..checkpoints import read_checkpoint
+        from ..graphs.connectivity import Connectivity
 
         directory = self.fit_dir / "checkpoints"
-        for path in [directory / "last.ckpt", *sorted(directory.glob("*.ckpt"))]:
-            if path.is_file():
-                hparams = read_checkpoint(path)["hyper_parameters"]
-                return list(hparams["eval_schedules"]), bool(hparams.get("test_m_plus_10", True))
-        raise FileNotFoundError(f"{directory}: the fit of {self.model} seed {self.seed} left no checkpoint")
+        path = next((p for p in [directory / "last.ckpt", *sorted(directory.glob("*.ckpt"))] if p.is_file()), None)
+        if path is None:
+            raise FileNotFoundError(f"{directory}: the fit of {self.model} seed {self.seed} left no checkpoint")
+        checkpoint = read_checkpoint(path)
+        hparams = checkpoint["hyper_parameters"]
+        saved = self.fit_dir / "config.yaml"
+        evaluation = dict(OmegaConf.load(saved).get("evaluation") or {}) if saved.is_file() else {}
+        if "eval_schedules" in hparams:
+            schedules, m_plus_10 = list(hparams["eval_schedules"]), bool(hparams.get("test_m_plus_10", True))
+        else:
+            schedules = list(evaluation.get("schedules") or PAPER_SCHEDULES)
+            m_plus_10 = bool(evaluation.get("m_plus_10", True))
+        connectivity = checkpoint.get("connectivity")
+        uses_points = Connectivity.from_dict(connectivity).uses_points if connectivity is not None else True
+        return [str(s) for s in effective_schedules(schedules, uses_points)], m_plus_10
 
     def checkpoints(self) -> dict[str, Selection]:
         """The checkpoint each metric family of the run's test is tested with (`selection`): the first
@@ -623,7 +637,7 @@ def run_baselines(sweep: dict, log=print) -> list[Path]:
         for part in run.test_parts():  # each schedule with the checkpoint selected on its family
             if part.schedules:
                 from ..baselines.scores import generated_mesh_metrics
-                from ..models.simulators import load_simulator  # here: Lightning, seconds to import
+                from ..models.loading import load_simulator  # here: Lightning, seconds to import
 
                 model = load_simulator(part.checkpoint, map_location="cpu")
                 metrics.update(generated_mesh_metrics(model, trajectories, part.schedules))

@@ -32,7 +32,8 @@ from ..data.schema import SCHEMA_VERSION, config_differences
 
 if TYPE_CHECKING:
     import torch
-from ..models.simulators import GraphSimulator, load_simulator
+from ..models.graph_simulator import GraphSimulator
+from ..models.loading import load_simulator
 
 REGISTRY = Path(__file__).resolve().parent
 PREFIX = "pretrained:"  # `--ckpt_path pretrained:plate/ggns` in the Lightning CLI
@@ -58,6 +59,27 @@ def manifest_path(name: str) -> Path:
 def manifest(name: str) -> dict:
     """The manifest of a shipped simulator (module docstring)."""
     return json.loads(manifest_path(name).read_text())
+
+
+def training_budget(manifest: dict) -> dict:
+    """What a shipped simulator's training run was given and used, from its manifest: `max_time_minutes`
+    (the fit's wall-clock budget, its command's `--trainer.max_time`; None without one), `fit_minutes` (its
+    first to last logged event), `last_validation_step` (the newest step of its validation curves) and
+    `selected_step` (the step of the checkpoint shipped)."""
+    import re
+    from datetime import datetime
+
+    trained = manifest.get("trained_by") or {}
+    found = re.findall(r"--trainer\.max_time[ =](\d+):(\d+):(\d+):(\d+)", trained.get("command") or "")
+    days, hours, minutes, seconds = (int(v) for v in found[-1]) if found else (None,) * 4
+    budget = None if days is None else days * 1440 + hours * 60 + minutes + seconds / 60
+    fit = None
+    if trained.get("fit_started") and trained.get("fit_finished"):
+        fit = (datetime.fromisoformat(trained["fit_finished"]) -
+               datetime.fromisoformat(trained["fit_started"])).total_seconds() / 60
+    steps = [int(step) for curve in (manifest.get("validation") or {}).values() for step, _ in curve]
+    return {"max_time_minutes": budget, "fit_minutes": fit, "last_validation_step": max(steps) if steps else None,
+            "selected_step": (manifest.get("source") or {}).get("global_step")}
 
 
 def checkpoint_path(name: str) -> Path:

@@ -22,7 +22,7 @@ from ggns.config import CONF_DIR
 from ggns.data.generate import split_path
 from ggns.data.predictions import read_predictions
 from ggns.data.schema import read_trajectories
-from ggns.evaluation.callbacks import RolloutEvaluation
+from ggns.callbacks import RolloutEvaluation
 from ggns.evaluation.evaluate import zero_motion_one_step_mse
 from ggns.evaluation.schedules import EveryK, Never
 from ggns.evaluation.selection import val_metric
@@ -366,3 +366,20 @@ def test_the_same_seed_gives_bit_identical_weights_and_test_metrics(cli_data, tm
     assert first_weights.keys() == weights.keys()
     assert all(torch.equal(first_weights[k], weights[k]) for k in weights)
     assert metrics == first_metrics and all(math.isfinite(m["mean"]) for m in metrics.values())
+
+
+def test_a_callback_named_by_its_former_module_is_refused_naming_its_place(tmp_path):
+    """Every callback lives in `ggns.callbacks`: a config or an argument that names one by the module it was in
+    before (`ggns.evaluation.callbacks`, `ggns.models.speed`, ...) is refused with its path now."""
+    from ggns.cli.lightning import build_cli
+
+    (tmp_path / "old.yaml").write_text("base: plate/mgn\ntrainer:\n  callbacks+:\n"
+                                       "    - class_path: ggns.evaluation.callbacks.RolloutPictures\n")
+    with pytest.raises(ValueError, match=r"old.yaml: ggns.evaluation.callbacks.RolloutPictures is now "
+                                         r"ggns.callbacks.RolloutPictures"):
+        build_cli(["--config", str(tmp_path / "old.yaml"), "--trainer.logger", "false"], run=False)
+    with pytest.raises(ValueError, match="the command line: ggns.models.speed.StaticRollouts is now ggns.callbacks"):
+        build_cli(["--config", "plate/mgn", "--trainer.callbacks+=ggns.models.speed.StaticRollouts"], run=False)
+    cli = build_cli(["--config", "plate/mgn", "--trainer.logger", "false",
+                     "--trainer.callbacks+=ggns.callbacks.StaticRollouts"], run=False)
+    assert sum(type(c).__name__ == "StaticRollouts" for c in cli.trainer.callbacks) == 1

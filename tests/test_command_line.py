@@ -1,5 +1,5 @@
-"""Parsers built from function signatures (`ggns.command_line`) and the commands built with it
-(`ggns.commands`, `python -m ggns generate|geometry|bench ...|sweep|demo`)."""
+"""Parsers built from function signatures (`ggns.cli.parser`) and the commands built with it
+(`ggns.cli.commands`, `ggns.cli.bench`, `python -m ggns generate|geometry|bench ...|sweep|demo`)."""
 from __future__ import annotations
 
 import re
@@ -11,8 +11,8 @@ from typing import Literal
 import pytest
 
 from ggns.__main__ import main
-from ggns.command_line import build_parser, call
-from ggns.commands import COMMANDS
+from ggns.cli.parser import build_parser, call
+from ggns.cli.commands import COMMANDS
 
 
 def sample(*overrides: str, name: str = "plate", count: int | None = None, rate: float = 0.5,

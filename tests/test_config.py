@@ -99,12 +99,12 @@ def test_settings_read_the_same_from_a_mapping_a_file_and_arguments(tmp_path):
     from ggns.config import args_mapping, command_line, merge_overrides, settings
 
     mapping = {"trainer": {"max_time": "00:00:40:00", "check_val_every_n_epoch": None, "enable_progress_bar": False,
-                           "callbacks+": ["ggns.experiments.clock.TrainingClock"]},
+                           "callbacks+": ["ggns.callbacks.TrainingClock"]},
                "model": {"class_path": "ggns.models.simulators.GGNSID", "init_args": {"lr_schedule": {"lr": 1e-3}}},
                "evaluation.schedules": ["every:1", "never"], "seed_everything": 1}
     args = command_line(mapping)
     assert args == ["--trainer.max_time", "00:00:40:00", "--trainer.check_val_every_n_epoch", "null",
-                    "--trainer.enable_progress_bar", "false", "--trainer.callbacks+", "ggns.experiments.clock.TrainingClock",
+                    "--trainer.enable_progress_bar", "false", "--trainer.callbacks+", "ggns.callbacks.TrainingClock",
                     "--model.class_path", "ggns.models.simulators.GGNSID", "--model.init_args.lr_schedule.lr", "0.001",
                     "--evaluation.schedules", '["every:1", "never"]', "--seed_everything", "1"]
     (tmp_path / "p.yaml").write_text("trainer: {max_time: '00:00:10:00', limit_val_batches: 8}\n"
@@ -114,7 +114,7 @@ def test_settings_read_the_same_from_a_mapping_a_file_and_arguments(tmp_path):
     assert found["trainer.max_time"] == "00:00:40:00" and found["trainer.limit_val_batches"] == 4  # later wins
     assert found["model.init_args.lr_schedule.lr"] == 0.001 == settings(["--model.init_args.lr_schedule.lr", "1e-3"])[
         "model.init_args.lr_schedule.lr"]
-    assert found["trainer.callbacks+"] == ["ggns.experiments.clock.TrainingClock"]
+    assert found["trainer.callbacks+"] == ["ggns.callbacks.TrainingClock"]
     assert found["evaluation.schedules"] == ["every:1", "never"] and found["trainer.check_val_every_n_epoch"] is None
     assert args_mapping(["--trainer.max_time", "00:00:40:00", "--data.batch_size", "8", "--data.batch_size=4",
                          "--trainer.callbacks+=a.B"]) == {"trainer": {"max_time": "00:00:40:00", "callbacks+": ["a.B"]},

@@ -23,7 +23,7 @@ from ggns.data.module import WindowDataset, collate
 from ggns.data.schema import read_trajectories
 from ggns.evaluation.schedules import EveryK, Never
 from ggns.graphs.state import state_graph
-from ggns.evaluation.callbacks import TestEvaluation
+from ggns.callbacks import TestEvaluation
 from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, GGNSM, MGN, MGNM, MGNShared
 from ggns.models.loading import load_simulator
 from conftest import TINY12, eager_losses, make
@@ -227,7 +227,7 @@ def test_a_fit_with_static_steps_then_a_test_in_one_process_with_workers_and_bf1
     import pytorch_lightning as pl
 
     from ggns.data.module import SimulationDataModule
-    from ggns.models.speed import StaticRollouts, StaticTraining
+    from ggns.callbacks import StaticRollouts, StaticTraining
 
     data = SimulationDataModule(str(cli_data / TINY12), batch_size=2, generate_missing=False, num_workers=2,
                                 eval_batch_size=2)

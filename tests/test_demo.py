@@ -11,7 +11,7 @@ import pytest
 
 from ggns import pretrained
 from ggns.config import CONF_DIR
-from ggns.demo import load_demo, run_demo
+from ggns.cli.demo import load_demo, run_demo
 
 from conftest import TINY12
 
@@ -27,7 +27,7 @@ def test_the_demo_trains_with_its_profiles_and_overrides(tmp_path):
     """`train`: the model config, then the CPU profiles stacked after it, the demo's data and validation
     trajectories, then its overrides (the demo's faster lr schedule), the budget and a progress bar."""
     from ggns.cli import build_cli
-    from ggns.demo import train_arguments
+    from ggns.cli.demo import train_arguments
 
     spec = load_demo("plate")
     args = train_arguments(spec, tmp_path, minutes=4)
@@ -51,7 +51,7 @@ def test_a_demo_file_extends_a_shipped_one_and_refuses_the_former_args(tmp_path,
     (tmp_path / "demo" / "plate.yaml").write_text(f"base: {CONF_DIR / 'demo' / 'plate.yaml'}\n"
                                                   "train: {args: ['--data.batch_size', '4']}\n")
     monkeypatch.setattr("ggns.config.CONF_DIR", tmp_path)
-    monkeypatch.setattr("ggns.demo.CONF_DIR", tmp_path)
+    monkeypatch.setattr("ggns.cli.demo.CONF_DIR", tmp_path)
     with pytest.raises(ValueError, match=r"train: `args`: a list of command-line strings .*\{data: \{batch_size: 4\}\}"):
         load_demo("plate")
 

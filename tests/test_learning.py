@@ -160,7 +160,7 @@ def test_two_tiny_variants_end_to_end_and_resume(cli_data, tmp_path):
     done = json.loads(marker.read_text())
     assert done["configs"] == [str(tmp_path / "tiny.yaml")] and done["settings"]["model.init_args.latent"] == 16
     inline = [part for key, value in done["settings"].items() for part in (f"--{key}", json.dumps(value).strip('"'))
-              if not key.endswith("+")] + ["--trainer.callbacks+=ggns.experiments.clock.TrainingClock"]
+              if not key.endswith("+")] + ["--trainer.callbacks+=ggns.callbacks.TrainingClock"]
     marker.write_text(json.dumps({"args": inline}))
     messages.clear()
     run_learning(spec, only=["paper"], log=messages.append)

@@ -186,7 +186,7 @@ def test_without_open3d_training_imports_and_generation_names_what_is_missing(tm
     script = textwrap.dedent(f"""
         import sys
         sys.modules["open3d"] = None  # import open3d now raises ImportError
-        import ggns.cli, ggns.commands, ggns.data.module, ggns.bench.tradeoff, ggns.evaluation.callbacks
+        import ggns.cli.lightning, ggns.cli.commands, ggns.data.module, ggns.bench.tradeoff, ggns.callbacks
         from ggns.config import load_config
         from ggns.data.generate import generate
         for workers in (1, 2):

@@ -20,9 +20,9 @@ from ggns.evaluation.rollout import RolloutError, one_step_predictions, rollout
 from ggns.evaluation.schedules import EveryK, Never, parse_schedule
 from ggns.graphs import search
 from ggns.graphs.search import compact, static_knn, static_radius
-from ggns.evaluation.callbacks import TestEvaluation
+from ggns.callbacks import TestEvaluation
 from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, MGN, MGNM
-from ggns.models.speed import StaticRollouts, StaticTraining
+from ggns.callbacks import StaticRollouts, StaticTraining
 from ggns.models.static_training import StaticTrainStep, bucket
 
 from conftest import TINY12, eager_losses, make

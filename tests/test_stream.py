@@ -222,7 +222,7 @@ def _streamed_fit(preset: Path, root: Path, budget: int, crash: int | None = Non
     the model."""
     from pytorch_lightning.callbacks import ModelCheckpoint
 
-    from ggns.models.random_state import RandomState
+    from ggns.callbacks import RandomState
     from ggns.models.simulators import GGNS
 
     pl.seed_everything(0, verbose=False)

@@ -129,7 +129,8 @@ def test_missing_metrics_raise_in_single_figures(tmp_path):
 def test_summarize_writes_and_links_figures(tmp_path):
     import json
 
-    from ggns.experiments.sweep import runs_of, summarize
+    from ggns.experiments.summary import summarize
+    from ggns.experiments.sweep import runs_of
 
     table = make_table()
     sweep = {"output": str(tmp_path / "out"), "seeds": [0, 1],

@@ -198,7 +198,7 @@ def test_tissue_tradeoff_at_two_resolutions(tmp_path):
 def test_devices_choose_where_the_models_roll_out(checkpoints, tiny_data_dir, tmp_path):
     """`--devices cpu` gives CPU rows only; `--devices cuda` without a GPU is refused before any work,
     naming CUDA (tests/test_cuda.py covers the GPU itself)."""
-    from ggns.commands import bench_tradeoff
+    from ggns.cli.bench import bench_tradeoff
 
     rows = bench_tradeoff("plate_tiny", {"ggns": str(checkpoints["ggns"])}, trajectories=1, schedules=["never"],
                           rollout_trajectories=2, repeats=1, output_dir=str(tmp_path / "out"),

@@ -234,7 +234,7 @@ def command_value(value) -> str:
 def command_line(overrides: Mapping) -> list[str]:
     """The `--dotted.key value` arguments of a mapping of Lightning settings, in its order: nested
     mappings flattened (`{model: {init_args: {latent: 64}}}` -> `--model.init_args.latent 64`), each item
-    of a `key+` list appended on its own (`--trainer.callbacks+ ggns.experiments.clock.TrainingClock`)."""
+    of a `key+` list appended on its own (`--trainer.callbacks+ ggns.callbacks.TrainingClock`)."""
     args: list[str] = []
 
     def walk(node: Mapping, prefix: str) -> None:

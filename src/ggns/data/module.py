@@ -13,7 +13,7 @@ pre-emption, a SIGKILL) starts that epoch's permutation after the batches its `g
 were already trained on, so the resumed fit sees the windows the uninterrupted one would have. No
 loader draws from torch's global random generator (each has its own), so the training noise and the
 imputation draws, which do, are the same sequence however the loaders are created (that generator's
-state is kept in a fit's checkpoints by the `models.random_state.RandomState` callback).
+state is kept in a fit's checkpoints by the `callbacks.RandomState` callback).
 
 The dataset is named by a data preset (conf/data/<name>.yaml or a YAML path): its `output`
 directory holds <split>.h5, or the split's shard files made by a job array (`generate --shard i/n`),

@@ -1,5 +1,5 @@
 """Learning curves of a fit, read from its TensorBoard event files: the scalars by optimizer step,
-training seconds (`TrainingClock`, in ggns.experiments.clock), the step a one-step ratio is first
+training seconds (`TrainingClock`, in ggns.callbacks.clock), the step a one-step ratio is first
 reached, the late slope of a rollout curve, one table row per fit, the markdown table and the curve
 figure. Used by `bench learning` (one row per variant) and by a sweep's summary (one row per run).
 """

@@ -30,7 +30,7 @@ companion run names only what differs: another seed, one more variant beside the
 Each variant is one `python -m ggns fit` in its own process (`sweep.Run` builds the command): its config,
 the run's and its own config files, then the budget and validation arguments, then the run's and the
 variant's settings merged (the variant's win; `ggns.config.command_line`), plus a `TrainingClock` callback
-(`ggns.experiments.clock`). A variant is finished when its fit exited cleanly
+(`ggns.callbacks.clock`). A variant is finished when its fit exited cleanly
 (`<run>/learning_finished.json`, which records the settings it ran with); finished variants are skipped
 (an error if their settings differ from the file's now), an interrupted one resumes from its
 `last.ckpt`. `write_report` then reads the event files and writes <output>/learning.md,
@@ -55,17 +55,6 @@ from .curves import (CLOCK, COLUMNS, LATE_STEPS, RATIO_THRESHOLD, VALIDATION_COL
 from .sweep import Launch, Run, RunFailed, check_stack, launch_process
 
 FINISHED = "learning_finished.json"
-
-
-def __getattr__(name: str):
-    """`ggns.experiments.learning.TrainingClock`, the callback's path in configs written before it moved
-    to `ggns.experiments.clock` (this module imports no Lightning: `bench learning`'s own process
-    starts without it)."""
-    if name == "TrainingClock":
-        from .clock import TrainingClock
-
-        return TrainingClock
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 # ---- the variants ---------------------------------------------------------------------------------
@@ -162,7 +151,7 @@ def variant_runs(spec: dict) -> list[Run]:
     budget = ["--trainer.max_time", max_time(spec["minutes"]), "--trainer.max_epochs", "-1",
               "--trainer.val_check_interval", str(int(spec["val_every"])),
               "--trainer.check_val_every_n_epoch", "null",
-              "--trainer.callbacks+=ggns.experiments.clock.TrainingClock"]
+              "--trainer.callbacks+=ggns.callbacks.TrainingClock"]
     configs = {name: variant_config(spec, name) for name in spec["variants"]}
     return [Run(name, int(spec.get("seed", 0)), config, tuple(budget + args), Path(spec["output"]), tuple(files))
             for name, (config, files, args) in configs.items()]

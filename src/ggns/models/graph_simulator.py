@@ -15,7 +15,7 @@ all ranks normalize alike and as one process over the same windows would.
 
 What a run does around the model is in callbacks: `RandomState` keeps the random generators' states
 in a fit's checkpoints so that a resumed fit repeats the uninterrupted one; the rollout evaluations
-(`evaluation.callbacks`: validation metrics, test metrics and their report, predictions) roll out
+(`ggns.callbacks`: validation metrics, test metrics and their report, predictions) roll out
 through the model's step and know the schedules; the model knows no schedule, metric table or report.
 
 Checkpoints hold the hyperparameters as plain values (components as dicts); `loading.py` reads them and
@@ -470,7 +470,7 @@ class GraphSimulator(pl.LightningModule):
 
     def _require_callback(self, name: str, stage: str) -> None:
         if not any(any(kind.__name__ == name for kind in type(c).__mro__) for c in self.trainer.callbacks):
-            raise RuntimeError(f"{stage} needs the ggns.evaluation.callbacks.{name} callback among the Trainer's "
+            raise RuntimeError(f"{stage} needs the ggns.callbacks.{name} callback among the Trainer's "
                                f"callbacks (python -m ggns {stage} adds it); the model only rolls out")
 
     # ---- checkpoints -------------------------------------------------------------------------

@@ -23,19 +23,19 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from .batch import TrajectoryBatch  # noqa: E402
-from .cli import build_cli  # noqa: E402
-from .config import (CONF_DIR, LIGHTNING_KEYS, command_line, config_file, load_layered, old_form_error,  # noqa: E402
+from ..batch import TrajectoryBatch  # noqa: E402
+from .lightning import build_cli  # noqa: E402
+from ..config import (CONF_DIR, LIGHTNING_KEYS, command_line, config_file, load_layered, old_form_error,  # noqa: E402
                      resolve_preset)
-from .data.module import SimulationDataModule  # noqa: E402
-from .evaluation.evaluate import MetricTable  # noqa: E402
-from .evaluation.pictures import error_curves, rollout_animation, rollout_picture, rollout_series  # noqa: E402
-from .evaluation.schedules import Never, parse_schedule  # noqa: E402
-from .experiments.curves import read_scalars  # noqa: E402
-from .experiments.paper import LABELS, paper_figures  # noqa: E402
-from .pretrained import check_data, load, training_budget  # noqa: E402
-from .reports import markdown_table, write_json, write_text  # noqa: E402
-from .viz import plot_error_over_time, save_figure  # noqa: E402
+from ..data.module import SimulationDataModule  # noqa: E402
+from ..evaluation.evaluate import MetricTable  # noqa: E402
+from ..evaluation.pictures import error_curves, rollout_animation, rollout_picture, rollout_series  # noqa: E402
+from ..evaluation.schedules import Never, parse_schedule  # noqa: E402
+from ..experiments.curves import read_scalars  # noqa: E402
+from ..experiments.paper import LABELS, paper_figures  # noqa: E402
+from ..pretrained import check_data, load, training_budget  # noqa: E402
+from ..reports import markdown_table, write_json, write_text  # noqa: E402
+from ..viz import plot_error_over_time, save_figure  # noqa: E402
 
 TASKS = ("plate", "tissue")
 

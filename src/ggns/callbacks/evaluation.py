@@ -1,4 +1,4 @@
-"""Lightning callbacks shared by all simulators: rollout metrics on the validation split (for
+"""The rollout callbacks shared by all simulators: rollout metrics on the validation split (for
 checkpoint selection per metric family, `evaluation.selection`) and rollout pictures in
 TensorBoard. Both run at the end of every validation epoch (set how often with the Trainer's
 `check_val_every_n_epoch`), never during the sanity check, and roll out through the module's
@@ -25,10 +25,10 @@ from ..data.predictions import Predictions, write_predictions
 from ..data.schema import SplitReader
 from ..reports import metrics_markdown, write_json, write_text
 from ..viz import figure_to_image
-from .evaluate import MetricTable, evaluate_model, zero_motion_one_step_mse
-from .pictures import rollout_picture
-from .schedules import PAPER_SCHEDULES, EveryK, Never, Schedule, effective_schedule, effective_schedules, parse_schedule
-from .selection import CHECKPOINT_KEY, M10, checkpoint_info, describe, val_metric
+from ..evaluation.evaluate import MetricTable, evaluate_model, zero_motion_one_step_mse
+from ..evaluation.pictures import rollout_picture
+from ..evaluation.schedules import PAPER_SCHEDULES, EveryK, Never, Schedule, effective_schedule, effective_schedules, parse_schedule
+from ..evaluation.selection import CHECKPOINT_KEY, M10, checkpoint_info, describe, val_metric
 
 
 def _eval_batch(trainer: pl.Trainer, split: str, count: int | None, cache: dict) -> TrajectoryBatch:

@@ -6,7 +6,7 @@ import time
 
 import pytorch_lightning as pl
 
-from .curves import CLOCK
+from ..experiments.curves import CLOCK
 
 
 class TrainingClock(pl.Callback):

@@ -26,19 +26,16 @@ import sys
 from pathlib import Path
 
 from pytorch_lightning import Trainer
-from pytorch_lightning.callbacks import Callback, LearningRateMonitor, ModelCheckpoint
-from pytorch_lightning.cli import LightningCLI, SaveConfigCallback
-from pytorch_lightning.trainer.states import TrainerFn
-from pytorch_lightning.utilities.exceptions import SIGTERMException
+from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
+from pytorch_lightning.cli import LightningCLI
 
-from .checkpoints import check_format, read_checkpoint
-from .config import base_chain, config_file, load_config
-from .data.module import SimulationDataModule
-from .evaluation.callbacks import TestEvaluation
-from .models.random_state import RandomState
-from .models.graph_simulator import GraphSimulator, refuse_distributed
-from .models.loading import RENAMED_ARGS, upgrade_hparams
-from .pretrained import PREFIX, check_data, checkpoint_path, shipped_name
+from ..checkpoints import check_format, read_checkpoint
+from ..config import base_chain, config_file, load_config
+from ..data.module import SimulationDataModule
+from ..callbacks import LastCheckpointOnSigterm, RandomState, RunConfigCallback, TestEvaluation
+from ..models.graph_simulator import GraphSimulator, refuse_distributed
+from ..models.loading import RENAMED_ARGS, upgrade_hparams
+from ..pretrained import PREFIX, check_data, checkpoint_path, shipped_name
 
 class CheckpointMismatchError(ValueError):
     """--ckpt_path names a checkpoint that contradicts the model the config or the command line asks for."""
@@ -54,6 +51,27 @@ def refuse_renamed_args(args: list[str]) -> None:
                          " (e.g. --model.init_args.noise.std 0.01, --model.init_args.lr_schedule.lr 1e-3)")
 
 
+# the modules the callbacks lived in before they moved into `ggns.callbacks`
+MOVED_CALLBACKS = re.compile(r"\bggns\.(?:evaluation\.callbacks|models\.speed|models\.random_state|experiments\.clock"
+                             r"|experiments\.learning)\.([A-Z]\w*)")
+
+
+def refuse_moved_callbacks(args: list[str]) -> None:
+    """A callback named by its module of an older version (`ggns.evaluation.callbacks.RolloutEvaluation`), on
+    the command line or in a `--config` file, raises ValueError naming its place now (`ggns.callbacks.<Name>`)."""
+    i = 0
+    while i < len(args):
+        where, text = "the command line", str(args[i])
+        if args[i] == "--config" and i + 1 < len(args) and Path(args[i + 1]).is_file():
+            where, text = str(args[i + 1]), Path(args[i + 1]).read_text()
+            i += 1
+        match = MOVED_CALLBACKS.search(text)
+        if match:
+            raise ValueError(f"{where}: {match.group(0)} is now ggns.callbacks.{match.group(1)} (every callback of the "
+                             f"library is in ggns.callbacks)")
+        i += 1
+
+
 def command_line_model_args(args: list[str]) -> set[str]:
     """The model init arguments given on a command line (`--model.init_args.NAME[=V]` or `--model.NAME`; a
     component's field, `--model.init_args.noise.std`, names its component, `noise`)."""
@@ -63,27 +81,6 @@ def command_line_model_args(args: list[str]) -> set[str]:
         if match and match.group(1) not in ("class_path", "init_args", "dict_kwargs"):
             names.add(match.group(1))
     return names
-
-
-class RunConfigCallback(SaveConfigCallback):
-    """Saves the run's full config next to its logs; a run without a logger has no log directory
-    of its own (Lightning would write config.yaml into the working directory) and saves none."""
-
-    def setup(self, trainer: Trainer, pl_module, stage: str) -> None:
-        if trainer.loggers:
-            super().setup(trainer, pl_module, stage)
-
-
-class LastCheckpointOnSigterm(Callback):
-    """On SIGTERM (Lightning stops at the end of the running batch), saves the fit's state where its
-    `last` ModelCheckpoint keeps it, so that resuming from last.ckpt loses no finished step."""
-
-    def on_exception(self, trainer: Trainer, pl_module, exception: BaseException) -> None:
-        if not isinstance(exception, SIGTERMException) or trainer.state.fn != TrainerFn.FITTING:
-            return
-        for callback in trainer.checkpoint_callbacks:
-            if isinstance(callback, ModelCheckpoint) and callback.filename == "last" and callback.dirpath:
-                trainer.save_checkpoint(callback.format_checkpoint_name({}, callback.filename))
 
 
 class SimulatorCLI(LightningCLI):
@@ -131,6 +128,7 @@ class SimulatorCLI(LightningCLI):
         if not isinstance(args, dict):
             args = shipped_configs([str(a) for a in (sys.argv[1:] if args is None else args)])
             refuse_renamed_args(args)
+            refuse_moved_callbacks(args)
         self._given_args = args if not isinstance(args, dict) else []
         super().parse_arguments(parser, args)
 

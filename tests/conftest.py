@@ -8,6 +8,9 @@ import threading
 from pathlib import Path
 
 os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")  # as `python -m ggns` runs (ggns.__main__), before torch allocates
+# the checkout's experiment presets by name (ggns.config.experiment_dirs), in the processes tests start too,
+# whatever their working directory
+os.environ.setdefault("GGNS_PRESETS", str(Path(__file__).resolve().parents[1] / "experiments"))
 if os.environ.get("PYTEST_XDIST_WORKER"):
     # `make test` runs one test process per core (pytest-xdist): one thread each, in the processes they start
     # too (set before numpy and torch read it); torch's intra-op threads on cores that other processes use

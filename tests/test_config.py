@@ -2,15 +2,25 @@
 keys, never add one; a typo is an error naming the key and the nearest valid ones."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from ggns.config import CONF_DIR, UnknownKeyError, load_config, unknown_keys
 
+ROOT = Path(__file__).resolve().parents[1]
 
-def test_every_shipped_preset_loads():
+
+def test_every_preset_loads_and_the_experiments_keep_theirs():
+    """Every data, graph and geometry preset loads by name, the shipped ones and those beside the experiments
+    that alone use them (experiments/<experiment>/{data,graphs}/: not shipped in the package)."""
+    from ggns.config import preset_files
+
     for kind in ("data", "graphs", "geometry"):
-        for path in sorted((CONF_DIR / kind).glob("*.yaml")):
+        for path in preset_files(kind):
             assert load_config(path.stem, kind=kind), path
+    beside = {p.stem for kind in ("data", "graphs") for p in preset_files(kind) if not p.is_relative_to(CONF_DIR)}
+    assert {"plate_small_pcnoise_0.01", "cavity_cpu_cam1", "plate_equal_radii", "tissue_mgn_near"} <= beside
 
 
 def test_overrides_change_known_keys_and_refuse_new_ones():
@@ -40,7 +50,10 @@ def test_unknown_keys_compares_mappings_only():
 def test_experiment_presets_are_found_by_name_after_the_shipped_ones_and_no_name_is_taken_twice():
     """The experiments' sweeps and learning files (experiments/<experiment>/<kind>/) resolve by name in a
     checkout as conf/'s do; conf/ comes first; a name is one preset per kind, so a name never picks one of two."""
-    from ggns.config import EXPERIMENTS_DIR, preset_files, resolve_preset
+    from ggns.config import experiment_dirs, preset_files, resolve_preset
+
+    EXPERIMENTS_DIR = ROOT / "experiments"
+    assert experiment_dirs() == [EXPERIMENTS_DIR]  # the checkout's (conftest names it in GGNS_PRESETS)
 
     for kind in ("sweeps", "learning"):
         names = [p.stem for p in preset_files(kind)]
@@ -52,6 +65,25 @@ def test_experiment_presets_are_found_by_name_after_the_shipped_ones_and_no_name
     assert not list(CONF_DIR.glob("*/plate_cpu_partition.yaml"))  # not shipped in the package
     with pytest.raises(FileNotFoundError, match="experiments.*known: .*plate_cpu_partition"):
         resolve_preset("plate_cpu_partitio", "sweeps")
+
+
+def test_the_package_finds_experiment_presets_only_where_it_is_told(tmp_path, monkeypatch):
+    """The installed package never looks outside itself: presets beyond conf/ come from the folders GGNS_PRESETS
+    names, else from the working directory's experiments/; elsewhere, with neither, a checkout's are not found."""
+    from ggns.config import preset_files, resolve_preset
+
+    (tmp_path / "mine" / "study" / "sweeps").mkdir(parents=True)
+    (tmp_path / "mine" / "study" / "sweeps" / "my_sweep.yaml").write_text("output: out\nseeds: [0]\nmodels: {}\n")
+    monkeypatch.setenv("GGNS_PRESETS", str(tmp_path / "mine"))
+    assert resolve_preset("my_sweep", "sweeps") == tmp_path / "mine" / "study" / "sweeps" / "my_sweep.yaml"
+    assert not any(p.stem == "plate_cpu_partition" for p in preset_files("sweeps"))
+    monkeypatch.delenv("GGNS_PRESETS")
+    monkeypatch.chdir(tmp_path)  # no experiments/ here
+    assert [p.parent.parent for p in preset_files("sweeps")] == [CONF_DIR] * len(preset_files("sweeps"))
+    with pytest.raises(FileNotFoundError, match="GGNS_PRESETS unset and no ./experiments here"):
+        resolve_preset("plate_cpu_partition", "sweeps")
+    (tmp_path / "experiments").symlink_to(tmp_path / "mine")
+    assert resolve_preset("my_sweep", "sweeps").name == "my_sweep.yaml"
 
 
 @pytest.mark.parametrize("kind", ["data", "sweeps", "learning", "demo", "bench", None])

@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 import torch
 
-from ggns.config import CONF_DIR, load_config
+from ggns.config import CONF_DIR, load_config, preset_files
 from ggns.geometry import cell_edges
 from ggns.batch import directed_mesh_edges
 from ggns.graphs.build import build_graph
@@ -193,7 +193,7 @@ def test_plate_mesh_graph():
 
 
 def test_connectivity_presets_and_validation():
-    names = sorted(p.stem for p in (CONF_DIR / "graphs").glob("*.yaml"))
+    names = sorted(p.stem for p in preset_files("graphs"))  # shipped and the experiments' (plate_equal_radii)
     assert {"plate_full_graph", "plate_equal_radii", "plate_reduced_graph", "plate_mgn"} <= set(names)
     for name in names:
         conn = load_connectivity(name)

@@ -19,8 +19,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _run(command: list[str], cwd: Path, env: dict | None = None, timeout: int = 600) -> str:
-    # without PYTHONPATH: a checkout's src on it would shadow the installed wheel
-    inherited = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    # without PYTHONPATH: a checkout's src on it would shadow the installed wheel; without GGNS_PRESETS: a user
+    # outside the checkout has none of its experiment presets
+    inherited = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "GGNS_PRESETS")}
     done = subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=timeout,
                           env={**inherited, **(env or {})})
     assert done.returncode == 0, f"{' '.join(map(str, command))}\n{done.stdout[-2000:]}\n{done.stderr[-3000:]}"

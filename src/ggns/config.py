@@ -19,6 +19,7 @@ mapping as the `--dotted.key value` arguments of a `python -m ggns fit` command.
 from __future__ import annotations
 
 import difflib
+import os
 import json
 import re
 from collections.abc import Mapping, Sequence
@@ -44,20 +45,33 @@ def config_file(spec: str | Path) -> Path:
     return path
 
 
-# The presets of the project's own experiments (sweeps and learning files that answered one question, each
-# beside its page in docs/experiments/): experiments/<experiment>/<kind>/<name>.yaml at a checkout's top, not
-# shipped in the package. A checkout finds them by name as it finds conf/'s; an installed package does not.
-EXPERIMENTS_DIR = CONF_DIR.parents[2] / "experiments"
+# Presets by name beyond the package's own conf/: folders laid out as experiments/<experiment>/<kind>/<name>.yaml
+# (the project's own experiments, each beside its page in docs/experiments/, are such a folder at a checkout's
+# top; they are not shipped in the package). The package never looks outside itself for them: the folders are
+# the ones GGNS_PRESETS lists (separated by os.pathsep), else the working directory's experiments/.
+PRESETS_ENV = "GGNS_PRESETS"
+
+
+def experiment_dirs() -> list[Path]:
+    """The folders searched for presets by name after conf/ (see `PRESETS_ENV`): `GGNS_PRESETS`'s, else
+    ./experiments when the working directory has one (a checkout's top)."""
+    listed = os.environ.get(PRESETS_ENV)
+    if listed is not None:
+        return [Path(p).expanduser() for p in listed.split(os.pathsep) if p]
+    here = Path.cwd() / "experiments"
+    return [here] if here.is_dir() else []
 
 
 def preset_files(kind: str) -> list[Path]:
-    """Every preset of a kind by name: conf/<kind>/*.yaml, then a checkout's experiments/*/<kind>/*.yaml."""
-    return sorted((CONF_DIR / kind).glob("*.yaml")) + sorted(EXPERIMENTS_DIR.glob(f"*/{kind}/*.yaml"))
+    """Every preset of a kind by name: conf/<kind>/*.yaml, then <folder>/*/<kind>/*.yaml of each
+    `experiment_dirs` folder."""
+    return sorted((CONF_DIR / kind).glob("*.yaml")) + [p for d in experiment_dirs()
+                                                        for p in sorted(d.glob(f"*/{kind}/*.yaml"))]
 
 
 def resolve_preset(name: str | Path, kind: str = "data") -> Path:
-    """A path to an existing YAML file, or a preset name: conf/<kind>/<name>.yaml, else the experiment preset
-    experiments/*/<kind>/<name>.yaml of a checkout (`preset_files`)."""
+    """A path to an existing YAML file, or a preset name: conf/<kind>/<name>.yaml, else an experiment preset
+    <folder>/*/<kind>/<name>.yaml of the `experiment_dirs` (`preset_files`)."""
     path = Path(name)
     if path.is_file():
         return path
@@ -65,8 +79,10 @@ def resolve_preset(name: str | Path, kind: str = "data") -> Path:
     if found:
         return found[0]
     known = sorted({p.stem for p in preset_files(kind)})
+    where = " or ".join(f"{d}/*/{kind}" for d in experiment_dirs()) or \
+        f"experiment folders ({PRESETS_ENV} unset and no ./experiments here)"
     raise FileNotFoundError(f"no config file {str(name)!r} and no preset of that name in {CONF_DIR / kind} "
-                            f"or {EXPERIMENTS_DIR}/*/{kind} (known: {known})")
+                            f"or {where} (known: {known})")
 
 
 class UnknownKeyError(ValueError):

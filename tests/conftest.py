@@ -99,7 +99,7 @@ _IN_PROCESS = threading.Lock()
 
 
 def launch_in_process(command: list[str], out, env: dict[str, str]) -> int:
-    """A `ggns.experiments.sweep.Launch` for tests of what a sweep or `bench learning` decides (which fits
+    """A `ggns.sweeps.sweep.Launch` for tests of what a sweep or `bench learning` decides (which fits
     and tests run, skip, resume, merge): `python -m ggns ...` called in this test process, one at a time,
     with the torch threads its OMP_NUM_THREADS asks for; output into `out`. Saves a process start-up
     (about 12 s of imports here) per command. What processes add (their own exit status, a kill of the
@@ -210,12 +210,12 @@ TINY_MODELS = {"ggns": ("conf/plate/ggns.yaml", "k1"), "mgn": ("conf/plate/mgn.y
 @pytest.fixture(scope="session")
 def tiny_registry(cli_data, tmp_path_factory):
     """Three simulators (tiny/ggns, tiny/mgn, tiny/mgn_m) trained for one epoch on the cli_data preset by
-    `ggns.experiments.pretrain.train` (the real fit command, a subprocess; the second and third run its
+    `ggns.sweeps.pretrain.train` (the real fit command, a subprocess; the second and third run its
     command in this process) and packaged by `package`
     into a temporary registry; returns (registry directory, spec)."""
     from ggns import pretrained
     from ggns.config import CONF_DIR
-    from ggns.experiments.pretrain import package, train
+    from ggns.sweeps.pretrain import package, train
 
     root = tmp_path_factory.mktemp("registry")
     sweep = root / "tiny_sweep.yaml"
@@ -238,7 +238,7 @@ def tiny_registry(cli_data, tmp_path_factory):
                 train(name, spec)
             else:  # the same fit command in this process: one process start fewer each
                 from ggns.__main__ import main
-                from ggns.experiments.pretrain import train_command
+                from ggns.sweeps.pretrain import train_command
 
                 with pytest.MonkeyPatch.context() as patch:
                     patch.setattr(sys, "argv", ["ggns"])  # LightningCLI warns when it also has one

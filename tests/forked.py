@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 
 # imported once by the forkserver (one that is missing is skipped: open3d where a machine has none)
-PRELOAD = ["ggns.__main__", "ggns.cli.lightning", "ggns.data.generate", "ggns.experiments.sweep", "open3d", "kill_points",
+PRELOAD = ["ggns.__main__", "ggns.cli.lightning", "ggns.data.generate", "ggns.sweeps.sweep", "open3d", "kill_points",
            "forked"]
 
 

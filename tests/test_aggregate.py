@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from ggns.experiments import NoBenefitError, RunResult, aggregate, load_run, normalized_benefit, to_csv, to_markdown
+from ggns.sweeps import NoBenefitError, RunResult, aggregate, load_run, normalized_benefit, to_csv, to_markdown
 
 
 def _runs():

@@ -342,7 +342,7 @@ def test_a_sweep_killed_mid_fit_and_mid_test_finishes_with_the_uninterrupted_met
     test part's output directory. Each rerun of the same command resumes: the fit from last.ckpt, the
     tests from the parts that finished; the merged test metrics equal an uninterrupted sweep's."""
     from conftest import launch_in_process
-    from ggns.experiments.sweep import load_sweep, run_sweep
+    from ggns.sweeps.sweep import load_sweep, run_sweep
 
     # the uninterrupted reference: the same sweep, its fit and test in this process (two start-ups fewer)
     run_sweep(load_sweep(_sweep_file(tmp_path / "whole", cli_data)), log=lambda message: None, launch=launch_in_process)

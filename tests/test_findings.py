@@ -1,11 +1,11 @@
-"""The paper's plate findings checked on hand-made aggregated tables (ggns.experiments.findings)."""
+"""The paper's plate findings checked on hand-made aggregated tables (ggns.sweeps.findings)."""
 from __future__ import annotations
 
 import math
 
 import pytest
 
-from ggns.experiments.findings import as_ggns, check_findings, check_targets, findings_markdown
+from ggns.sweeps.findings import as_ggns, check_findings, check_targets, findings_markdown
 
 
 def stat(mean, std=0.0):

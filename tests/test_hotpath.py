@@ -354,9 +354,9 @@ def test_the_import_probe_times_a_fresh_import_and_the_sweep_processes_import_no
     from ggns.bench.ab import run_probe
 
     src = Path(__file__).resolve().parents[1] / "src"
-    result = run_probe(src, "import ggns.experiments.sweep", threads=1)
-    assert result["probe"] == "import ggns.experiments.sweep" and result["ms"] > 0
-    check = ("import sys, ggns.experiments.sweep, ggns.experiments.learning, ggns.baselines, ggns.cli.commands; "
+    result = run_probe(src, "import ggns.sweeps.sweep", threads=1)
+    assert result["probe"] == "import ggns.sweeps.sweep" and result["ms"] > 0
+    check = ("import sys, ggns.sweeps.sweep, ggns.sweeps.learning, ggns.baselines, ggns.cli.commands; "
              "from ggns.reports import metrics_markdown; "  # what a sweep writes a run's merged metrics with
              "assert 'e-01' in metrics_markdown({'mse': {'mean': 0.5, 'std': float('nan'), 'count': 2}}); "
              "heavy = sorted(m for m in ('torch', 'pytorch_lightning', 'torch_geometric') if m in sys.modules); "

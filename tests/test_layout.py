@@ -119,7 +119,7 @@ def test_no_private_name_is_imported_across_modules():
 # the layers in import order (README "Layout"): each imports only layers listed before it
 LAYERS = ("ggns", "ggns.errors", "ggns.phases", "ggns.checks", "ggns.trajectory", "ggns.batch", "ggns.geometry", "ggns.config", "ggns.reports", "ggns.checkpoints", "ggns.sim",
           "ggns.scenes", "ggns.sensors", "ggns.data", "ggns.graphs", "ggns.viz", "ggns.paraview", "ggns.evaluation", "ggns.models",
-          "ggns.baselines", "ggns.pretrained", "ggns.online", "ggns.experiments", "ggns.callbacks", "ggns.bench", "ggns.cli",
+          "ggns.baselines", "ggns.pretrained", "ggns.online", "ggns.sweeps", "ggns.callbacks", "ggns.bench", "ggns.cli",
           "ggns.__main__")
 
 

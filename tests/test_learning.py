@@ -1,4 +1,4 @@
-"""`python -m ggns bench learning` (`ggns.experiments.learning`): the curve summaries on hand-made
+"""`python -m ggns bench learning` (`ggns.sweeps.learning`): the curve summaries on hand-made
 curves, and two tiny GGNS variants end to end (fits of the Lightning CLI in this process, `launch_in_process`, on
 plate_tiny with T = 12, a budget of 4 optimizer steps): table, CSV and figures, the logged lr, resume."""
 from __future__ import annotations
@@ -17,8 +17,8 @@ from conftest import TINY12, launch_in_process
 from ggns.__main__ import main
 from ggns.checkpoints import read_checkpoint
 from ggns.config import CONF_DIR, preset_files
-from ggns.experiments.curves import CLOCK, COLUMNS, late_slope, read_scalars, steps_to_threshold, variant_row
-from ggns.experiments.learning import FINISHED, load_learning, run_learning, variant_runs
+from ggns.sweeps.curves import CLOCK, COLUMNS, late_slope, read_scalars, steps_to_threshold, variant_row
+from ggns.sweeps.learning import FINISHED, load_learning, run_learning, variant_runs
 from ggns.models.lr_schedule import scheduled_lr
 
 

@@ -1,11 +1,11 @@
-"""`python -m ggns paper` (ggns.experiments.paper): sweep summaries in the paper's layout, the paper's figures beside."""
+"""`python -m ggns paper` (ggns.sweeps.paper): sweep summaries in the paper's layout, the paper's figures beside."""
 from __future__ import annotations
 
 import pytest
 import yaml
 
 from ggns.__main__ import main
-from ggns.experiments.paper import COLUMNS, PAPER_FIGURES, TASKS, paper_figures, paper_table, read_summary
+from ggns.sweeps.paper import COLUMNS, PAPER_FIGURES, TASKS, paper_figures, paper_table, read_summary
 
 SUMMARY = """model,metric,mean,std,seeds
 ggns,rollout_mse_k1,1.0e-4,1.0e-5,3

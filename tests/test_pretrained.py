@@ -19,7 +19,7 @@ from ggns.config import CONF_DIR, load_config
 from ggns.data.generate import regenerate, trajectory_jobs
 from ggns.evaluation.schedules import parse_schedule
 from ggns.evaluation.selection import checkpoint_info
-from ggns.experiments.pretrain import load_spec
+from ggns.sweeps.pretrain import load_spec
 from ggns.models.loading import load_simulator
 
 from conftest import TINY12
@@ -33,7 +33,7 @@ SHIPPED = pretrained.names()
 
 def test_an_entry_trains_its_sweep_run_with_its_overrides():
     """`overrides` of a pretrained entry (a mapping of Lightning settings) go after its sweep run's."""
-    from ggns.experiments.pretrain import entry_run, train_command
+    from ggns.sweeps.pretrain import entry_run, train_command
 
     spec = load_spec()
     run, index, overrides = entry_run("plate/mgn", spec)

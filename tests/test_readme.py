@@ -8,7 +8,7 @@ import shlex
 import pytest
 
 from pathlib import Path
-from ggns.experiments.paper import paper_table
+from ggns.sweeps.paper import paper_table
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"

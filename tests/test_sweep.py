@@ -14,8 +14,8 @@ import yaml
 
 from ggns.config import CONF_DIR, preset_files
 from ggns.baselines.scores import GENERATED_MESH_FILE
-from ggns.experiments.summary import baseline_spec, run_baselines, summarize
-from ggns.experiments.sweep import Run, load_sweep, prepare_datasets, run_sweep, runs_of, slurm_script
+from ggns.sweeps.summary import baseline_spec, run_baselines, summarize
+from ggns.sweeps.sweep import Run, load_sweep, prepare_datasets, run_sweep, runs_of, slurm_script
 from conftest import TINY12, launch_in_process
 
 

@@ -4,8 +4,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
-from ggns.experiments.aggregate import normalized_benefit
-from ggns.experiments.figures import (benefit_curve, draw_benefit_curve, draw_schedule_bars, iou_bars,
+from ggns.sweeps.aggregate import normalized_benefit
+from ggns.sweeps.figures import (benefit_curve, draw_benefit_curve, draw_schedule_bars, iou_bars,
                                       m_plus_10_bars, rollout_mse_bars, write_figures)
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -129,8 +129,8 @@ def test_missing_metrics_raise_in_single_figures(tmp_path):
 def test_summarize_writes_and_links_figures(tmp_path):
     import json
 
-    from ggns.experiments.summary import summarize
-    from ggns.experiments.sweep import runs_of
+    from ggns.sweeps.summary import summarize
+    from ggns.sweeps.sweep import runs_of
 
     table = make_table()
     sweep = {"output": str(tmp_path / "out"), "seeds": [0, 1],

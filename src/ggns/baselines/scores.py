@@ -1,6 +1,6 @@
 """The baselines scored like the learned models' test runs, in the runs' own metric format
 ({metric: {"mean", "std", "count"}} over test trajectories), so a sweep's summary tabulates them
-with the learned models (`ggns.experiments.summary.run_baselines` computes them on a sweep's test
+with the learned models (`ggns.sweeps.summary.run_baselines` computes them on a sweep's test
 trajectories and stores them beside its runs):
 
     generated_mesh_iou_<s>   mean IoU (steps 1..T-1, as `rollout_iou_<s>`) of a rollout under

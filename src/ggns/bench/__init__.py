@@ -11,5 +11,5 @@
                  simulators (`tradeoff`)
 
 `python -m ggns bench learning` (learning per CPU-second) is an experiment that runs fits:
-ggns.experiments.learning.
+ggns.sweeps.learning.
 """

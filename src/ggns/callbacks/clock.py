@@ -1,12 +1,12 @@
 """`TrainingClock`: training seconds without validation, logged as `time/train_seconds` (read by
-`ggns.experiments.curves`; added to every fit of `python -m ggns bench learning`)."""
+`ggns.sweeps.curves`; added to every fit of `python -m ggns bench learning`)."""
 from __future__ import annotations
 
 import time
 
 import pytorch_lightning as pl
 
-from ..experiments.curves import CLOCK
+from ..sweeps.curves import CLOCK
 
 
 class TrainingClock(pl.Callback):

@@ -66,8 +66,8 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
     errors = (FileNotFoundError, FileExistsError, IsADirectoryError, PermissionError, ValueError, SimulationError,
               RolloutError)
-    if "ggns.experiments.sweep" in sys.modules:  # a sweep's fit or test that failed, with its own error line
-        from ..experiments.sweep import RunFailed
+    if "ggns.sweeps.sweep" in sys.modules:  # a sweep's fit or test that failed, with its own error line
+        from ..sweeps.sweep import RunFailed
 
         errors += (RunFailed,)
     if "pytorch_lightning" in sys.modules:  # Lightning's own refusal of a configuration

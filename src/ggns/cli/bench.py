@@ -138,7 +138,7 @@ def bench_learning(*overrides: str, config: str = "plate_ggns", minutes: float |
         report_only: only write the report from the logs
         dry_run: print each variant's fit command (its config files and settings) and run nothing
     """
-    from ..experiments.learning import load_learning, run_learning, variant_runs, write_report
+    from ..sweeps.learning import load_learning, run_learning, variant_runs, write_report
 
 
     overrides = list(overrides)

@@ -306,8 +306,8 @@ def sweep(*overrides: str, config: str = "plate", task: int | None = None, slurm
         aggregate_only: only aggregate the finished runs (e.g. after a SLURM array)
         dry_run: print each run's fit command (its config files and settings; with --task, that run's) and run nothing
     """
-    from ..experiments.summary import run_baselines, summarize
-    from ..experiments.sweep import load_sweep, run_sweep, runs_of, slurm_script
+    from ..sweeps.summary import run_baselines, summarize
+    from ..sweeps.sweep import load_sweep, run_sweep, runs_of, slurm_script
 
 
     spec = load_sweep(config, list(overrides))
@@ -350,7 +350,7 @@ def pretrained_train(name: str, output: str | None = None) -> None:
         name: the entry, e.g. plate/ggns
         output: folder of the sweep runs (default: the spec's)
     """
-    from ..experiments.pretrain import load_spec, train
+    from ..sweeps.pretrain import load_spec, train
 
     spec = load_spec()
     train(name, {**spec, "output": output or spec["output"]})
@@ -363,7 +363,7 @@ def pretrained_package(name: str, output: str | None = None) -> Path:
         name: the entry, e.g. plate/ggns
         output: folder of the sweep runs (default: the spec's)
     """
-    from ..experiments.pretrain import load_spec, package
+    from ..sweeps.pretrain import load_spec, package
 
     spec = load_spec()
     return package(name, {**spec, "output": output or spec["output"]})
@@ -397,7 +397,7 @@ def paper(task: Literal["plate", "tissue", "cavity"] = "plate", summary: dict[st
         output: also write the markdown to this file
         compact: the paper's four models and four columns only (the README's tables)
     """
-    from ..experiments.paper import paper_table
+    from ..sweeps.paper import paper_table
     from ..reports import write_text
 
     text = paper_table(task, dict(summary or {}), compact=compact)

@@ -31,8 +31,8 @@ from ..data.module import SimulationDataModule  # noqa: E402
 from ..evaluation.evaluate import MetricTable  # noqa: E402
 from ..evaluation.pictures import error_curves, rollout_animation, rollout_picture, rollout_series  # noqa: E402
 from ..evaluation.schedules import Never, parse_schedule  # noqa: E402
-from ..experiments.curves import read_scalars  # noqa: E402
-from ..experiments.paper import LABELS, paper_figures  # noqa: E402
+from ..sweeps.curves import read_scalars  # noqa: E402
+from ..sweeps.paper import LABELS, paper_figures  # noqa: E402
 from ..pretrained import check_data, load, training_budget  # noqa: E402
 from ..reports import markdown_table, write_json, write_text  # noqa: E402
 from ..viz import plot_error_over_time, save_figure  # noqa: E402

@@ -34,7 +34,7 @@ here): a node one element behind the surface the points lie on (the cavity's inn
 tissue's first interior layer) is about its shortest edge away from it, and the points are denser
 than the nodes. 0.75 x the median of all edges, diagonals included, is too wide: it counts most of
 the tissue's interior nodes and nearly all the cavity's inner-wall nodes as seen (measured in
-docs/experiments.md, "Where a rollout's error lives"). Used by `python -m ggns diagnose`.
+docs/sweeps.md, "Where a rollout's error lives"). Used by `python -m ggns diagnose`.
 """
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 Each entry is two files in this folder, `<task>/<model>.ckpt` and its manifest `<task>/<model>.json`:
 the checkpoint holds the weights, normalizer statistics and hyperparameters only (a Lightning
 checkpoint without optimizer state, readable by `python -m ggns test --ckpt_path ...`), and the
-manifest says how it was made and what it scores (written by `ggns.experiments.pretrain`):
+manifest says how it was made and what it scores (written by `ggns.sweeps.pretrain`):
 
     name, task, model, class          "plate/ggns", "plate", "ggns", "GGNS"
     file, sha256, bytes               the checkpoint file and its hash (checked on every load)

@@ -201,7 +201,7 @@ def run_learning(spec: dict, only: Sequence[str] | None = None, log: Callable[[s
         spec: a loaded learning file (`load_learning`).
         only: names of the variants to fit; None: all.
         log: called with one line per fit and skip.
-        launch: how each fit command runs (`ggns.experiments.sweep.Launch`; default its own process).
+        launch: how each fit command runs (`ggns.sweeps.sweep.Launch`; default its own process).
 
     Returns:
         the report's path, <output>/learning.md.

@@ -127,7 +127,7 @@ def summarize(sweep: dict, log=print) -> Path:
     lines += ["", "## The paper's findings on this sweep", "", findings_markdown(check_findings(table))]
     lines += ["## The project's targets on this sweep", "",
               "Every model's one-step MSE against predicting no motion (the `static` row), GGNS's rollout "
-              "MSE over the point-cloud schedules, GGNS k=1 against MGN (ggns.experiments.findings).", "",
+              "MSE over the point-cloud schedules, GGNS k=1 against MGN (ggns.sweeps.findings).", "",
               findings_markdown(check_targets(table), head="target")]
     for model in sweep.get("findings_ggns", []):  # variants of GGNS, each judged in GGNS's place
         if model in table:

@@ -4,7 +4,7 @@ One table per task, as the paper reports it: full-rollout MSE per point-cloud sc
 10; MGN and MGN(M) without point clouds, our `never`), the m+10-step MSE (pooled over each rollout's
 steps, as the paper's is, and at S_{m+10} alone: conf/paper/ggns_iclr2023.yaml says why), the one-step MSE against
 predicting no motion (the paper reports none) and the rollout IoU (the paper's: the plate only). Ours
-come from sweep summaries (`summary.csv`: seed mean and std per model and metric, `ggns.experiments.
+come from sweep summaries (`summary.csv`: seed mean and std per model and metric, `ggns.sweeps.
 aggregate`); the paper's from conf/paper/ggns_iclr2023.yaml (read from its LaTeX source). Below the
 table, the ratios the paper's claims rest on, ours beside the paper's.
 """

@@ -16,7 +16,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from ..sensors.camera import DepthImage, _open3d, back_project, collider_mesh, object_mesh
+from ..sensors.camera import DepthImage, back_project, collider_mesh, object_mesh, open3d_module
 
 CROP_SLAB = 1.0  # half thickness of the 2D slabs the crop measures distances to (points lie at z = 0, inside)
 
@@ -26,7 +26,7 @@ class _Surface:
     points lie inside it or within a distance of it."""
 
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray):
-        o3d = _open3d()
+        o3d = open3d_module()
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
                                  o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)))
@@ -35,7 +35,7 @@ class _Surface:
     def within(self, points: np.ndarray, distance: float, among: np.ndarray | None = None) -> np.ndarray:
         """bool [P]: points [P, 3] inside the surface or at most `distance` from it (only those of `among`, bool
         [P], when given)."""
-        o3c = _open3d().core
+        o3c = open3d_module().core
         candidate = ((points >= self.low - distance) & (points <= self.high + distance)).all(axis=1)
         if among is not None:
             candidate &= among
@@ -172,7 +172,7 @@ class DepthProcessing:
     def _downsample(self, points: np.ndarray, dim: int, tick: int) -> np.ndarray:
         """[P, 3] -> [P', dim] float32 at the training data's density, sorted lexicographically (as the sensor)."""
         if len(points) and self.downsample == "voxel":  # the sensor's own down-sampling (grid at the bbox min)
-            o3d = _open3d()
+            o3d = open3d_module()
             cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
             points = np.asarray(cloud.voxel_down_sample(self.voxel_size).points)
         elif len(points):

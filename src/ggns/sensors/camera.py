@@ -26,14 +26,15 @@ import numpy as np
 from ..geometry import boundary_facets
 
 
-def _open3d():
-    """Open3D, imported on first use: only raycasting (making datasets) needs it; fitting, testing and
-    benchmarking on datasets already written do not, so a machine without it (a GPU cluster's node,
-    say) still trains."""
+def open3d_module():
+    """Open3D, imported on first use: only raycasting (making datasets, rendering depth images) and the online
+    depth path (`ggns.online.DepthProcessing`) need it; fitting, testing and benchmarking on datasets already
+    written do not, so a machine without it (a GPU cluster's node, say) still trains."""
     try:
         import open3d
     except ImportError as error:
-        raise ImportError("open3d is needed to raycast point clouds (generating a dataset); install it "
+        raise ImportError("open3d is needed to raycast point clouds (generating a dataset) and to turn depth "
+                          "images into them (ggns.online); install it "
                           "(scripts/setup.sh, or pip install open3d with the system library libusb-1.0), or "
                           "train on a dataset generated elsewhere") from error
     return open3d
@@ -125,7 +126,7 @@ class PinholeCamera:
     def rays(self) -> np.ndarray:
         """Rays [height_px * width_px, 6] float32 as (origin, direction), row-major pixels; each direction's
         component along the view direction is 1, so a ray's hit distance t is the hit's depth."""
-        o3d = _open3d()
+        o3d = open3d_module()
         o3c = o3d.core
         rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
             fov_deg=self.fov_deg,
@@ -394,7 +395,7 @@ class DepthSensor:
         self.config = config
         rays = np.concatenate([cam.rays() for cam in config.cameras], axis=0)
         self._rays = rays.astype(np.float64)
-        self._rays_tensor = _open3d().core.Tensor(np.ascontiguousarray(rays, dtype=np.float32))
+        self._rays_tensor = open3d_module().core.Tensor(np.ascontiguousarray(rays, dtype=np.float32))
         self._offsets = np.cumsum([0] + [cam.width_px * cam.height_px for cam in config.cameras])
         self._true_rays, self._true_rays_tensor = self._rays, self._rays_tensor
         if any(v != 0 for v in config.extrinsic_error):
@@ -406,7 +407,8 @@ class DepthSensor:
                 turn = true[:3, :3] @ pose[:3, :3].T  # the configured view directions to the true ones
                 self._true_rays[start:stop, :3] = true[:3, 3]
                 self._true_rays[start:stop, 3:] = self._rays[start:stop, 3:] @ turn.T
-            self._true_rays_tensor = _open3d().core.Tensor(np.ascontiguousarray(self._true_rays, dtype=np.float32))
+            self._true_rays_tensor = open3d_module().core.Tensor(
+                np.ascontiguousarray(self._true_rays, dtype=np.float32))
 
     def _scene(self, positions, cells, collider_vertices, collider_faces, occluders, surface):
         """(Open3D raycasting scene, the deformable object's geometry id, d) of one state (`observe`'s
@@ -428,8 +430,8 @@ class DepthSensor:
                                  f"{vertices.shape}, {triangles.shape}")
             meshes.append((vertices, triangles))
 
-        o3c = _open3d().core
-        scene = _open3d().t.geometry.RaycastingScene()
+        o3c = open3d_module().core
+        scene = open3d_module().t.geometry.RaycastingScene()
         ids = [
             scene.add_triangles(
                 o3c.Tensor(np.ascontiguousarray(v, dtype=np.float32)),
@@ -468,7 +470,7 @@ class DepthSensor:
         if cfg.random_flaws and rng is None:
             raise ValueError("rng is required when the sensor's flaws draw noise (axial_noise, outlier_fraction)")
         scene, object_id, d = self._scene(positions, cells, collider_vertices, collider_faces, occluders, surface)
-        o3d = _open3d()
+        o3d = open3d_module()
         if cfg.has_flaws:
             points = np.concatenate([np.zeros((0, 3))] + [back_project(image) for image in
                                                           self._images(scene, object_id, rng)])

@@ -83,6 +83,17 @@ class DivergenceCheck:
         self.neighbours.raise_if_failed()
 
 
+def predict_next(step_fn: StepFn, batch: TrajectoryBatch, t: int, positions: Tensor, use_points: bool | Tensor,
+                 connectivity: Connectivity, with_material: bool, state: Any, neighbours=None) -> tuple[Tensor, Any]:
+    """One prediction step of the engine: the graph of state t with the mesh at `positions` [sumN, d]
+    (`state_graph`), the step function, and the fixed nodes set to their known positions at t + 1.
+    Returns (positions at t + 1 [sumN, d], the model's new state); `rollout` and the online simulator
+    (`ggns.online`) both step through it."""
+    graph = state_graph(batch, t, positions, use_points, connectivity, with_material, neighbours)
+    displacement, state = step_fn(graph, state)
+    return torch.where(batch.fixed[:, None], batch.positions[t + 1], positions + displacement), state
+
+
 def rollout(step_fn: StepFn, batch: TrajectoryBatch, schedule: Schedule, connectivity: Connectivity,
             with_material: bool = False, start_positions: Tensor | None = None, start: int = 0,
             steps: int | None = None, state: Any = None, check_every: int | None = None) -> tuple[Tensor, Any]:
@@ -99,16 +110,14 @@ def rollout(step_fn: StepFn, batch: TrajectoryBatch, schedule: Schedule, connect
     if start < 0 or steps < 0 or start + steps > last:
         raise ValueError(f"rollout start={start}, steps={steps} leaves the states 0..{last}")
     pos = batch.positions[start] if start_positions is None else start_positions.to(batch.positions)
-    fixed = batch.fixed[:, None]
     out = [pos]
     check = DivergenceCheck(batch, pos, connectivity)
     every = check_interval(pos.device, check_every)
     with torch.no_grad():
         for i, t in enumerate(range(start, start + steps)):
             check.neighbours.step = t
-            graph = state_graph(batch, t, pos, schedule.uses_points(t), connectivity, with_material, check.neighbours)
-            displacement, state = step_fn(graph, state)
-            raw = torch.where(fixed, batch.positions[t + 1], pos + displacement)
+            raw, state = predict_next(step_fn, batch, t, pos, schedule.uses_points(t), connectivity, with_material,
+                                      state, check.neighbours)
             pos = check.observe(raw, pos, t)
             out.append(raw)
             if (i + 1) % every == 0 or i == steps - 1:

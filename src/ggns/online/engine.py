@@ -4,8 +4,8 @@ The offline engine (`evaluation.rollout.rollout`) predicts state t + 1 of a reco
 from the graph of state t (`graphs.state.state_graph`), the model's step function and the fixed nodes set
 to their known positions. Online only the current state and the inputs of one tick exist: `tick_batch`
 puts them into a `TrajectoryBatch` of two states (the static parts, mesh, cells, fixed mask, material,
-shared by every tick), and `advance` makes the step of `rollout`'s loop on it: the same graph builder,
-step function and update, so that fed the recorded inputs it returns what `rollout` returns.
+shared by every tick), and `advance` makes the step of `rollout`'s loop on it (`evaluation.rollout.predict_next`,
+the one prediction step both call), so that fed the recorded inputs it returns what `rollout` returns.
 """
 from __future__ import annotations
 
@@ -16,9 +16,8 @@ import torch
 from torch import Tensor
 
 from ..batch import TrajectoryBatch
-from ..evaluation.rollout import StepFn
+from ..evaluation.rollout import StepFn, predict_next
 from ..graphs.connectivity import Connectivity
-from ..graphs.state import state_graph
 
 
 def tick_batch(static: TrajectoryBatch, positions: Tensor, fixed_next: Tensor, collider: Tensor | None,
@@ -73,6 +72,4 @@ def advance(step_fn: StepFn, batch: TrajectoryBatch, positions: Tensor, use_poin
     and the fixed nodes set to state 1's. Returns (positions [sumN, d], new model state); a neighbour count
     over the connectivity's cap raises the graph builder's ValueError at once."""
     with torch.no_grad():
-        graph = state_graph(batch, 0, positions, use_points, connectivity, with_material)
-        displacement, state = step_fn(graph, state)
-        return torch.where(batch.fixed[:, None], batch.positions[1], positions + displacement), state
+        return predict_next(step_fn, batch, 0, positions, use_points, connectivity, with_material, state)

@@ -472,3 +472,26 @@ def test_default_sensor_is_unchanged_bit_for_bit(trajs, config):
 def test_bad_flaw_settings_name_their_field(field, value):
     with pytest.raises(ValueError, match=field):
         SensorConfig(CAMERAS[:1], 0.05, **{field: value})
+
+
+# ---- the benchmark of the stepper's time per tick (`python -m ggns bench online`) --------------------------------
+def test_bench_online_times_each_observation_and_writes_its_files(tiny_data_dir, tmp_path):
+    import csv
+
+    from ggns.bench.online import COLUMNS, bench_online
+    from ggns.cli.bench import BENCH_COMMANDS
+
+    assert "online" in BENCH_COMMANDS
+    rows = bench_online({"untrained": make(GGNS)}, dataset="plate_tiny", data_dirs={"plate_tiny": str(tiny_data_dir)},
+                        ticks=3, warmup=1, threads=(1,), output_dir=tmp_path)
+    assert [(r["observation"], r["threads"], r["ticks"]) for r in rows] == [("none", 1, 3), ("points", 1, 3),
+                                                                            ("depth", 1, 3)]
+    for row in rows:
+        assert np.isfinite([row["median ms"], row["q1 ms"], row["q3 ms"]]).all()
+        assert 0 < row["q1 ms"] <= row["median ms"] <= row["q3 ms"] and row["ticks per s"] > 0
+    assert rows[0]["mean points"] == 0 and rows[1]["mean points"] > 0 and rows[2]["mean points"] > 0
+    with open(tmp_path / "online_bench.csv", newline="") as file:
+        written = list(csv.DictReader(file))
+    assert list(written[0]) == COLUMNS and [r["observation"] for r in written] == ["none", "points", "depth"]
+    assert all(np.isfinite(float(r["median ms"])) for r in written)
+    assert "| untrained | plate_tiny | 81 | depth |" in (tmp_path / "online_bench.md").read_text()

@@ -248,6 +248,34 @@ def bench_ab(baseline: str, probe: Sequence[str] | None = None, rounds: int = 5,
                baseline_env=dict(baseline_env or {}), candidate_env=dict(candidate_env or {}))
 
 
+def bench_online(simulator: Sequence[str] = ("plate/ggns", "tissue/ggns"), dataset: str | None = None,
+                 data_dir: dict[str, str] | None = None, ticks: int | None = None, warmup: int = 5,
+                 threads: Sequence[int] = (1, 2), observation: Sequence[Literal["none", "points", "depth"]] = (
+                     "none", "points", "depth"), output_dir: str = "lightning_logs/online_bench") -> list[dict]:
+    """The online simulator's time per tick (`ggns.online.OnlineSimulator.step`) on the first test trajectory.
+
+    Each simulator is stepped tick by tick through the first test trajectory of its data preset (plate:
+    plate_small, tissue: tissue_cpu), fed the collider's poses and nothing, the stored point cloud or the
+    depth images of the scene's virtual cameras; median and quartiles per tick after a warm-up, with each
+    torch thread count. Writes online_bench.csv and online_bench.md, and says whether the tissue's ticks
+    without an observation on 2 threads reach 100 per second.
+
+    Args:
+        simulator: shipped simulators (e.g. tissue/mgn_m) or checkpoint paths (these need --dataset)
+        dataset: the data preset of every simulator (default: each shipped simulator's: plate_small, tissue_cpu)
+        data_dir: the folder of a preset's test.h5, as PRESET=DIR (default: the preset's output)
+        ticks: timed ticks (default: every tick of the trajectory)
+        warmup: ticks stepped before each timed run
+        threads: torch thread counts
+        observation: what each tick is fed: none, points (the stored cloud), depth (the virtual cameras' images)
+        output_dir: where online_bench.csv and online_bench.md go
+    """
+    from ..bench.online import bench_online as run
+
+    return run({name: name for name in simulator}, dataset=dataset, data_dirs=dict(data_dir or {}), ticks=ticks,
+               warmup=warmup, threads=tuple(threads), observations=tuple(observation), output_dir=output_dir)
+
+
 BENCH_COMMANDS = {"sim": bench_sim, "solvers": bench_solvers, "models": bench_models, "tradeoff": bench_tradeoff,
                   "stability": bench_stability, "learning": bench_learning, "ab": bench_ab, "profile": bench_profile,
-                  "precision": bench_precision}
+                  "precision": bench_precision, "online": bench_online}

@@ -495,3 +495,19 @@ def test_bench_online_times_each_observation_and_writes_its_files(tiny_data_dir,
     assert list(written[0]) == COLUMNS and [r["observation"] for r in written] == ["none", "points", "depth"]
     assert all(np.isfinite(float(r["median ms"])) for r in written)
     assert "| untrained | plate_tiny | 81 | depth |" in (tmp_path / "online_bench.md").read_text()
+
+
+def test_online_study_feeds_late_frames_and_scores_every_tick(trajs, config):
+    from ggns.bench.online import camera_frames
+    from ggns.bench.online_study import track
+
+    world, model = trajs[0], make(GGNS)
+    depth = DepthProcessing.from_sensor_config(config["sensor"])
+    errors, fed = track(model, world, camera_frames(config, world), every=2, latency=1, depth=depth)
+    assert errors.shape == (world.num_steps - 1,) and np.isfinite(errors).all()
+    assert fed == len(range(0, world.num_steps - 2, 2))  # the frames of ticks 0, 2, .. arrive at 1, 3, .. <= T - 2
+    blind, none = track(model, world, None, 1, 0, depth)  # blind: the offline rollout, scored per tick
+    offline = model.rollout(TrajectoryBatch.from_trajectories([world]), "never")
+    np.testing.assert_allclose(blind, ((offline[1:].double().numpy() - world.positions[1:]) ** 2).mean(axis=(1, 2)),
+                               rtol=1e-5)
+    assert none == 0

@@ -220,11 +220,12 @@ def bench_online(simulators: Mapping[str, Any], dataset: str | None = None,
 
 
 def machine() -> str:
-    """The machine in words: CPU cores, torch version, the checkout's commit (when in a git checkout)."""
+    """The machine in words: CPU cores, torch version, the checkout's commit (when in a git checkout) and the load
+    average of the last minute (other processes share the cores)."""
     commit = subprocess.run(["git", "-C", str(Path(__file__).resolve().parent), "rev-parse", "--short", "HEAD"],
                             capture_output=True, text=True).stdout.strip() or "unknown"
     return (f"{os.cpu_count()} CPU cores ({platform.processor() or platform.machine()}), torch {torch.__version__}, "
-            f"commit {commit}")
+            f"commit {commit}, load average {os.getloadavg()[0]:.1f} when written")
 
 
 def online_markdown(rows: list[dict]) -> str:

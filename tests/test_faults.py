@@ -113,8 +113,10 @@ def _fit_config(directory: Path) -> Path:
 
     from ggns.config import CONF_DIR
 
+    # plate/ggns.yaml extends trainer_points.yaml, which extends trainer.yaml: their callbacks in that order
     callbacks = (yaml.safe_load((CONF_DIR / "trainer.yaml").read_text())["trainer"]["callbacks"] +
-                 yaml.safe_load((CONF_DIR / "plate" / "ggns.yaml").read_text())["trainer"]["callbacks+"])
+                 yaml.safe_load((CONF_DIR / "trainer_points.yaml").read_text())["trainer"]["callbacks+"])
+    assert yaml.safe_load((CONF_DIR / "plate" / "ggns.yaml").read_text())["base"] == "trainer_points"
     (last,) = [c for c in callbacks if c.get("init_args", {}).get("filename") == "last"]
     last["init_args"] = {"filename": "last", "every_n_train_steps": 3}
     path = directory / "ggns_last_every_3_steps.yaml"  # extends the shipped config, its callbacks replaced

@@ -5,7 +5,7 @@ geometry, and the refusal of split files generated for another scene."""
 import numpy as np
 import pytest
 
-from ggns.config import load_config
+from ggns.config import load_config, resolve_preset
 from ggns.data.generate import split_path
 from ggns.data.module import SimulationDataModule
 from ggns.data.schema import DatasetError, config_differences, read_trajectories
@@ -90,7 +90,7 @@ def test_split_of_another_scene_is_refused(tiny_data_dir, tmp_path):
     with pytest.raises(DatasetError, match="scene.plane.*file: 'stress', preset: 'strain'"):
         read_trajectories(path, expected_config=changed)
     earlier = tmp_path / "earlier.yaml"  # the earlier scene's preset pointed at today's files
-    earlier.write_text(f"base: {load_config.__globals__['CONF_DIR'] / 'data' / 'plate_earlier.yaml'}\n"
+    earlier.write_text(f"base: {resolve_preset('plate_earlier', 'data')}\n"  # experiments/earlier_dataset/data/
                        f"scene: {{num_steps: 8}}\noutput: {tiny_data_dir}\n")
     data = SimulationDataModule(str(earlier), generate_missing=False)
     with pytest.raises(DatasetError, match="another configuration.*scene.bottom_width"):

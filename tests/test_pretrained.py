@@ -38,7 +38,14 @@ def test_an_entry_trains_its_sweep_run_with_its_overrides():
     spec = load_spec()
     run, index, overrides = entry_run("plate/mgn", spec)
     assert run.model == "mgn" and overrides == ["seeds=[0]", f"output={spec['output']}/plate"]
-    assert run.args[-2:] == ("--trainer.max_time", "00:00:40:00") and "--trainer.max_time" in run.args[:-2]  # the sweep's 12 min first
+    # after the sweep's 12 minutes: the plate GGNS's optimizer steps and no time limit
+    assert run.args[-4:] == ("--trainer.max_steps", "28111", "--trainer.max_time", "null")
+    assert "--trainer.max_time" in run.args[:-4]
+    # every baseline's budget is the optimizer steps its task's shipped GGNS trained for
+    for name, entry in spec["entries"].items():
+        if not name.endswith("/ggns"):
+            ggns = pretrained.training_budget(pretrained.manifest(name.split("/")[0] + "/ggns"))
+            assert entry["overrides"]["trainer.max_steps"] == ggns["last_validation_step"], name
     command = train_command("plate/mgn", spec)
     assert command[:4] == ["python", "-m", "ggns", "fit"]
     assert [command[i + 1] for i, a in enumerate(command) if a == "--config"] == [
@@ -209,3 +216,15 @@ def test_the_lightning_cli_tests_a_pretrained_name_and_refuses_other_scenes(regi
         main([*base, "--data.dataset", "plate_small"])
     assert exit_.value.code == 2
     assert "trained on the" in capsys.readouterr().err
+
+
+def test_a_shipped_simulators_budget_is_read_from_its_training_command():
+    """`training_budget`/`budget_text`: the last `--trainer.max_time` of the manifest's command wins (a later
+    `null` lifts it), `--trainer.max_steps` is the step budget; the shipped files name theirs."""
+    command = "python -m ggns fit --trainer.max_time 00:00:15:00 --trainer.max_steps 9474 --trainer.max_time null"
+    budget = pretrained.training_budget({"trained_by": {"command": command}})
+    assert (budget["max_time_minutes"], budget["max_steps"]) == (None, 9474)
+    assert pretrained.budget_text({"trained_by": {"command": command}}) == "9474 steps"
+    assert pretrained.budget_text({"trained_by": {"command": "x --trainer.max_time 00:01:30:00"}}) == "90 min"
+    assert pretrained.budget_text({"trained_by": {"command": "x"}}) == "-"
+    assert pretrained.budget_text(pretrained.manifest("plate/ggns")) == "40 min"

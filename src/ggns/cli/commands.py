@@ -328,16 +328,15 @@ def sweep(*overrides: str, config: str = "plate", task: int | None = None, slurm
 
 def pretrained_list() -> list[str]:
     """The shipped pretrained simulators, their training data, budget, steps and test metric."""
-    from ..pretrained import manifest, names, training_budget
+    from ..pretrained import budget_text, manifest, names
 
     shipped = names()
     for name in shipped:
         m = manifest(name)
         family = m["source"]["family"]
         metric = m["test"]["metrics"].get(f"rollout_mse_{family}", {}).get("mean")
-        budget = training_budget(m)["max_time_minutes"]
-        budget = f"{budget:3.0f} min" if budget is not None else "   -   "
-        print(f"{name:14s} {m['class']:6s} {m['bytes'] / 1024:5.0f} KB  data {m['data']['preset']:10s} budget {budget} "
+        print(f"{name:14s} {m['class']:6s} {m['bytes'] / 1024:5.0f} KB  data {m['data']['preset']:10s} "
+              f"budget {budget_text(m):>11s} "
               f"{m['source']['global_step']:6d} steps  test rollout_mse_{family} {metric:.3e} "
               f"({m['test']['trajectories']} trajectories)")
     return shipped

@@ -33,7 +33,7 @@ from ..evaluation.pictures import error_curves, rollout_animation, rollout_pictu
 from ..evaluation.schedules import Never, parse_schedule  # noqa: E402
 from ..sweeps.curves import read_scalars  # noqa: E402
 from ..sweeps.paper import LABELS, paper_figures  # noqa: E402
-from ..pretrained import check_data, load, training_budget  # noqa: E402
+from ..pretrained import budget_text, check_data, load  # noqa: E402
 from ..reports import markdown_table, write_json, write_text  # noqa: E402
 from ..viz import plot_error_over_time, save_figure  # noqa: E402
 
@@ -91,12 +91,12 @@ def results_table(spec: dict, results: dict) -> str:
 
 
 def claim(results: dict, budgets: dict | None = None) -> tuple[float | None, str]:
-    """GGNS k=1 against MGN (full rollout MSE): (ratio, one sentence naming each model's training budget in
-    minutes, `budgets`: key -> minutes or None, when given)."""
+    """GGNS k=1 against MGN (full rollout MSE): (ratio, one sentence naming each model's training budget,
+    `budgets`: key -> its words, `ggns.pretrained.budget_text`, when given)."""
     budgets = budgets or {}
 
     def given(key: str) -> str:
-        return f", trained {budgets[key]:.0f} min" if budgets.get(key) is not None else ""
+        return f", trained {budgets[key]}" if budgets.get(key) not in (None, "-") else ""
 
     ggns = results.get("ggns", {}).get("rollout_mse_k1", {}).get("mean")
     mgn = results.get("mgn", {}).get("rollout_mse_never", {}).get("mean")
@@ -222,8 +222,7 @@ def run_demo(task: str = "plate", output: str | Path = "lightning_logs/demo", mi
     module.prepare_data()
     print(f"[2/4] pretrained {', '.join(spec['pretrained'].values())} on the test split")
     models, results, _ = evaluate_pretrained(spec, module)
-    ratio, sentence = claim(results, {key: training_budget(model.manifest)["max_time_minutes"]
-                                      for key, model in models.items()})
+    ratio, sentence = claim(results, {key: budget_text(model.manifest) for key, model in models.items()})
     print("      " + sentence.replace("**", ""))
     print("[3/4] pictures")
     figures = pictures(spec, models, module, output)
@@ -266,9 +265,8 @@ def write_report(spec: dict, task: str, results: dict, sentence: str, figures: l
         m = model.manifest
         family = m["source"]["family"]
         metric = f"rollout_mse_{family}"
-        budget = training_budget(m)["max_time_minutes"]
         lines.append(f"| `{m['name']}` | {m['trained_by']['fit_started']} on `{m['data']['preset']}` | "
-                     f"{f'{budget:.0f} min' if budget is not None else '-'} | "
+                     f"{budget_text(m)} | "
                      f"{m['source']['global_step']} | {m['parameters']} | {metric} "
                      f"{m['test']['metrics'][metric]['mean']:.3e} on {m['test']['trajectories']} |")
     lines += ["", *(f"![{p.stem}]({p.name})" for p in figures if p.suffix == ".png" and p.stem != "learning"),

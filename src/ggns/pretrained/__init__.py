@@ -63,23 +63,38 @@ def manifest(name: str) -> dict:
 
 def training_budget(manifest: dict) -> dict:
     """What a shipped simulator's training run was given and used, from its manifest: `max_time_minutes`
-    (the fit's wall-clock budget, its command's `--trainer.max_time`; None without one), `fit_minutes` (its
+    (the fit's wall-clock budget, its command's last `--trainer.max_time`; None without one), `max_steps` (its
+    command's last `--trainer.max_steps`; None without one), `fit_minutes` (its
     first to last logged event), `last_validation_step` (the newest step of its validation curves) and
     `selected_step` (the step of the checkpoint shipped)."""
     import re
     from datetime import datetime
 
     trained = manifest.get("trained_by") or {}
-    found = re.findall(r"--trainer\.max_time[ =](\d+):(\d+):(\d+):(\d+)", trained.get("command") or "")
-    days, hours, minutes, seconds = (int(v) for v in found[-1]) if found else (None,) * 4
-    budget = None if days is None else days * 1440 + hours * 60 + minutes + seconds / 60
+    command = trained.get("command") or ""
+    given = re.findall(r"--trainer\.max_time[ =](\S+)", command)  # the last one wins, as on the command line
+    parts = re.fullmatch(r"(\d+):(\d+):(\d+):(\d+)", given[-1]) if given else None
+    budget = None
+    if parts:
+        days, hours, minutes, seconds = (int(v) for v in parts.groups())
+        budget = days * 1440 + hours * 60 + minutes + seconds / 60
     fit = None
     if trained.get("fit_started") and trained.get("fit_finished"):
         fit = (datetime.fromisoformat(trained["fit_finished"]) -
                datetime.fromisoformat(trained["fit_started"])).total_seconds() / 60
+    max_steps = re.findall(r"--trainer\.max_steps[ =](\d+)", command)
     steps = [int(step) for curve in (manifest.get("validation") or {}).values() for step, _ in curve]
-    return {"max_time_minutes": budget, "fit_minutes": fit, "last_validation_step": max(steps) if steps else None,
+    return {"max_time_minutes": budget, "max_steps": int(max_steps[-1]) if max_steps else None, "fit_minutes": fit,
+            "last_validation_step": max(steps) if steps else None,
             "selected_step": (manifest.get("source") or {}).get("global_step")}
+
+
+def budget_text(manifest: dict) -> str:
+    """A shipped simulator's training budget in words: "30 min" (wall clock), "9474 steps", or "-"."""
+    budget = training_budget(manifest)
+    if budget["max_time_minutes"] is not None:
+        return f"{budget['max_time_minutes']:.0f} min"
+    return f"{budget['max_steps']} steps" if budget["max_steps"] is not None else "-"
 
 
 def checkpoint_path(name: str) -> Path:

@@ -43,7 +43,9 @@ def track(model, world, frames: Sequence | None, every: int, latency: int, depth
 
     from ..online import Observation, OnlineSimulator
 
-    sim = OnlineSimulator(model, {"object": world}, depth=depth, history=max(latency, 1))
+    # every tick kept (history = the trajectory's length): with a history shorter than the ticks stepped,
+    # OnlineSimulator.step keeps past[len(past) - history:], fewer than `history` ticks while len(past) < history
+    sim = OnlineSimulator(model, {"object": world}, depth=depth, history=world.num_steps)
     fixed = moving_fixed(world)
     errors, fed = [], 0
     for t in range(world.num_steps - 1):

@@ -506,6 +506,9 @@ def test_online_study_feeds_late_frames_and_scores_every_tick(trajs, config):
     errors, fed = track(model, world, camera_frames(config, world), every=2, latency=1, depth=depth)
     assert errors.shape == (world.num_steps - 1,) and np.isfinite(errors).all()
     assert fed == len(range(0, world.num_steps - 2, 2))  # the frames of ticks 0, 2, .. arrive at 1, 3, .. <= T - 2
+    frames = camera_frames(config, world)
+    late, fed = track(model, world, frames, every=1, latency=5, depth=depth)  # 5 ticks late: kept that long
+    assert fed == world.num_steps - 1 - 5 and np.isfinite(late).all()
     blind, none = track(model, world, None, 1, 0, depth)  # blind: the offline rollout, scored per tick
     offline = model.rollout(TrajectoryBatch.from_trajectories([world]), "never")
     np.testing.assert_allclose(blind, ((offline[1:].double().numpy() - world.positions[1:]) ** 2).mean(axis=(1, 2)),

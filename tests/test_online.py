@@ -180,12 +180,14 @@ def test_bad_input_is_refused_and_leaves_the_state_unchanged(trajs, sensor):
     torch.testing.assert_close(sim.step(**step), twin.step(**step), rtol=0, atol=0)  # nothing half-done stayed
 
 
-def test_late_observations_correct_the_past_and_predict_forward(trajs):
+@pytest.mark.parametrize("delay, history", [(2, 2), (5, None)])
+def test_late_observations_correct_the_past_and_predict_forward(trajs, delay, history):
     """Clouds arriving `delay` ticks late, stamped with their tick: after each tick the state is the offline
-    rollout's that saw the clouds of the ticks up to t - delay (FirstM), the LSTM's state replayed too."""
-    model, delay = make(GGNSLSTM), 2
+    rollout's that saw the clouds of the ticks up to t - delay (FirstM), the LSTM's state replayed too; the
+    default history (8 ticks) keeps what a frame 5 ticks late needs."""
+    model = make(GGNSLSTM)
     batch = TrajectoryBatch.from_trajectories(trajs)
-    sim = OnlineSimulator(model, trajs, history=delay)
+    sim = OnlineSimulator(model, trajs, **({} if history is None else {"history": history}))
     for t in range(batch.num_steps - 1):
         seen = t - delay
         late = {b: Observation(points=tr.point_cloud(seen), tick=seen) for b, tr in enumerate(trajs)} \

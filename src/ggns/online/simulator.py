@@ -287,7 +287,7 @@ class OnlineSimulator:
                                         self._tick)
         past.append(_Tick(self._tick, positions, model_state, self._collider, points))
         # nothing failed: commit
-        self._past = past[len(past) - self.history:] if self.history else []
+        self._past = past[max(0, len(past) - self.history):] if self.history else []
         self._positions, self._model_state, self._collider = nxt, next_state, collider_next
         self._tick += 1
         return self.positions()

@@ -217,7 +217,7 @@ class SensorConfig:
         axial_noise: c of the depth noise sigma_z = c z^2 (z the pixel's depth) of a structured-light
             or stereo camera, in 1 / scene unit; each pixel moves along its ray. The Kinect's c is
             `KINECT_AXIAL_NOISE` = 1.6e-3 per metre (Khoshelham & Elberink 2012); a scene whose unit is
-            s metres takes 1.6e-3 * s (the plate's unit is a metre: 1.6e-3, 1.4 mm at its camera's 3 m).
+            s metres takes 1.6e-3 * s (the plate's unit is a metre: 1.6e-3, 1.4 cm at its camera's 3 m).
         grazing_angle_deg: pixels whose ray meets the surface at more than this angle from its normal
             return nothing (90: off).
         edge_threshold: pixels with a 4-neighbour whose depth differs by more than this (scene units),

@@ -78,3 +78,24 @@ def test_the_demo_runs_end_to_end_on_tiny_sizes(tiny_registry, cli_data, tmp_pat
         assert gif.n_frames == 12
     printed = capsys.readouterr().out
     assert f"report:   {report}" in printed and "rollout.gif" in printed
+
+
+def test_the_online_demo_tracks_a_test_trajectory_with_late_noisy_frames(tiny_registry, cli_data, tmp_path,
+                                                                       monkeypatch):
+    """`ggns demo --online` on tiny sizes: the tiny registry's GGNS stepped online through a test trajectory fed
+    the virtual camera's noisy depth frames of every 2nd tick one tick late, beside the blind models; the
+    error curves, the report and the JSON are written, and the frames changed GGNS's run."""
+    from ggns.cli.demo import run_online
+
+    monkeypatch.setattr(pretrained, "REGISTRY", tiny_registry[0])
+    spec = {**load_demo("plate"), "data": str(cli_data / TINY12),
+            "pretrained": {"ggns": "tiny/ggns", "mgn": "tiny/mgn", "mgn_m": "tiny/mgn_m"}}
+    report = run_online("plate", tmp_path, spec, trajectory=1, every=2, latency=1, noise=1.0)
+    out = json.loads((tmp_path / "plate" / "online.json").read_text())
+    curves = out["per_tick_mse"]
+    assert len(curves) == 4 and all(len(c) == 11 for c in curves.values())  # T = 12: ticks 1..11
+    grounded, blind = curves["GGNS, a frame every 2 ticks, 1 late"], curves["GGNS blind"]
+    assert grounded[0] == blind[0] and grounded != blind  # the frame of tick 0 arrives at tick 1: the first step is blind
+    assert (tmp_path / "plate" / "online.png").stat().st_size > 0 and "tracking MSE" in report.read_text()
+    with pytest.raises(ValueError, match="every >= 1"):
+        run_online("plate", tmp_path, spec, every=0)

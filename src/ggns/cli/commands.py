@@ -369,9 +369,12 @@ def pretrained_package(name: str, output: str | None = None) -> Path:
 
 
 def demo(task: Literal["plate", "tissue"] = "plate", output: str = "lightning_logs/demo", minutes: float | None = None,
-         test_trajectories: int | None = None, data: str | None = None, train: bool = True) -> Path:
+         test_trajectories: int | None = None, data: str | None = None, train: bool = True, online: bool = False,
+         trajectory: int = 0, every: int = 2, latency: int = 1, noise: float = 1.0) -> Path:
     """The README's main job (conf/demo/<task>.yaml): the pretrained GGNS, MGN and MGN(M) on test
-    trajectories generated here, pictures, and GGNS trained from scratch for a few minutes.
+    trajectories generated here, pictures, and GGNS trained from scratch for a few minutes; with --online,
+    the shipped GGNS stepped tick by tick on one test trajectory, fed late, noisy depth frames, beside the
+    blind models (docs/online.md).
 
     Args:
         task: plate (the default, about 5 minutes on 2 cores) or tissue
@@ -380,9 +383,19 @@ def demo(task: Literal["plate", "tissue"] = "plate", output: str = "lightning_lo
         test_trajectories: test trajectories evaluated (default: the task's)
         data: another data preset of the same scene (default: the task's)
         train: train GGNS from scratch after the evaluation
+        online: instead, the online loop (online.md, online.png, online.json in <output>/<task>/)
+        trajectory: the online loop's test trajectory
+        every: the online loop's frames: of every n-th tick
+        latency: the online loop's frames arrive this many ticks after the tick they show
+        noise: the online loop's axial depth noise, times the Kinect's (0: none)
     """
-    from .demo import run_demo
+    from .demo import load_demo, run_demo, run_online
 
+    if online:
+        spec = load_demo(task)
+        if data is not None:
+            spec["data"] = data
+        return run_online(task, output, spec, trajectory=trajectory, every=every, latency=latency, noise=noise)
     return run_demo(task, output, minutes=minutes, test_trajectories=test_trajectories, data=data, train=train)
 
 

@@ -43,10 +43,7 @@ def track(model, world, frames: Sequence | None, every: int, latency: int, depth
 
     from ..online import Observation, OnlineSimulator
 
-    # every tick kept: OnlineSimulator.step keeps past[len(past) - history:], which while len(past) < history keeps
-    # only the last history - len(past) ticks once that is fewer (about history / 2 are kept); twice the
-    # trajectory's length keeps them all
-    sim = OnlineSimulator(model, {"object": world}, depth=depth, history=2 * world.num_steps)
+    sim = OnlineSimulator(model, {"object": world}, depth=depth, history=world.num_steps)  # any latency up to T
     fixed = moving_fixed(world)
     errors, fed = [], 0
     for t in range(world.num_steps - 1):

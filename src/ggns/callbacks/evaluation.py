@@ -167,13 +167,13 @@ class TestEvaluation(pl.Callback):
     def on_test_end(self, trainer: pl.Trainer, pl_module) -> None:
         if not trainer.is_global_zero or self.results is None:
             return
-        title = f"{type(pl_module).__name__} test metrics"
-        print("\n" + metrics_markdown(self.results, title))
+        table = metrics_markdown(self.results, f"{type(pl_module).__name__} test metrics")
+        print("\n" + table)
         info = checkpoint_info(trainer.ckpt_path) if trainer.ckpt_path else None
         line = f"tested checkpoint: {describe(info)}" + (f", {info['path']}" if info else "")
         print(line)
         directory = Path(trainer.log_dir or ".")
-        write_text(directory / "test_metrics.md", metrics_markdown(self.results, title) + "\n" + line + "\n")
+        write_text(directory / "test_metrics.md", table + "\n" + line + "\n")
         write_json(directory / "test_metrics.json", {**self.results, CHECKPOINT_KEY: info})
 
 

@@ -324,7 +324,7 @@ class OnlineSimulator:
         poses = self._per_object(collider, "collider pose")
         if self._collider is None:
             if poses:
-                raise ValueError(f"collider pose given, but the object(s) have no collider")
+                raise ValueError("collider pose given, but the object(s) have no collider")
             return None
         parts = [self._collider_of(self._collider, b) for b in range(len(self.names))]
         for b, pose in poses.items():

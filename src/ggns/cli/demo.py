@@ -259,7 +259,7 @@ def write_report(spec: dict, task: str, results: dict, sentence: str, figures: l
              "trajectories, in squared task-space units; MGN never sees point clouds. The paper's columns are its "
              "test figures (full rollouts read off its bar charts, `-` where it gives none).", "",
              results_table(spec, results), ""]
-    lines += ["| simulator | trained | budget (wall clock) | optimizer steps of the file | parameters | "
+    lines += ["| simulator | trained | budget | optimizer steps of the file | parameters | "
               "manifest test (same trajectories) |",
               "|---|---|---|---|---|---|"]
     for key, model in models.items():

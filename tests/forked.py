@@ -10,8 +10,11 @@ as with a process started from scratch.
 
 Not covered here, and so left to real start-ups elsewhere: the interpreter's own start (`python -m
 ggns` resolving the package; test_cli, test_install), what a process inherits besides its environment
-(test_distributed's DDP ranks, test_bad_input's sweep and bench learning fits), and the killed sweep of
-test_faults (its process imports little, and forked it saved nothing measurable)."""
+(test_distributed's DDP ranks, test_bad_input's sweep and bench learning fits).
+
+A sweep (`start(..., session=True)`) is forked into a session of its own, so that a SIGKILL to its
+process group ends it and whatever it runs, as a cluster ends a job; each fit and test it runs is forked
+from it in turn (`fork_run`), so none of them imports torch and Lightning again either."""
 from __future__ import annotations
 
 import multiprocessing
@@ -25,15 +28,26 @@ PRELOAD = ["ggns.__main__", "ggns.cli.lightning", "ggns.data.generate", "ggns.sw
            "forked"]
 
 
-def _main(argv: list[str], env: dict[str, str], cwd: str, stdout: str, stderr: str) -> None:
-    """The child: `python -m ggns <argv>` from here on; ends the process with main()'s exit status."""
-    os.environ.clear()
-    os.environ.update(env)
-    os.chdir(cwd)
+def _main(argv: list[str], env: dict[str, str], cwd: str, stdout: str, stderr: str, session: bool = False) -> None:
+    """The child: `python -m ggns <argv>` from here on; ends the process with main()'s exit status.
+    session: a session and process group of its own, its sweep's fits and tests forked from it."""
+    if session:
+        os.setsid()
+        import ggns.sweeps.sweep
+
+        ggns.sweeps.sweep.subprocess = _ForkingSubprocess  # what launch_process runs each command with
     for fd, path in ((1, stdout), (2, stderr)):
         target = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
         os.dup2(target, fd)
         os.close(target)
+    _run_main(argv, env, cwd)
+
+
+def _run_main(argv: list[str], env: dict[str, str], cwd: str) -> None:
+    """`ggns.__main__.main(argv)` in this process with `env` and `cwd`, then the process's end with its status."""
+    os.environ.clear()
+    os.environ.update(env)
+    os.chdir(cwd)
     import torch
 
     from ggns.__main__ import main
@@ -57,6 +71,26 @@ def _main(argv: list[str], env: dict[str, str], cwd: str, stdout: str, stderr: s
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(code)
+
+
+class _ForkingSubprocess:
+    """Stands in for the `subprocess` module inside a forked sweep: `run` forks the sweep's process (its
+    imports done) for each `python -m ggns fit|test` command, stdout and stderr into the run's log file."""
+
+    STDOUT = subprocess.STDOUT
+
+    @staticmethod
+    def run(command: list[str], stdout, stderr, env: dict[str, str]) -> subprocess.CompletedProcess:
+        assert command[1:3] == ["-m", "ggns"] and stderr == subprocess.STDOUT, command
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:
+            for fd in (1, 2):
+                os.dup2(stdout.fileno(), fd)
+            _run_main(command[3:], env, os.getcwd())
+        _, status = os.waitpid(pid, 0)
+        return subprocess.CompletedProcess(command, os.waitstatus_to_exitcode(status))
 
 
 class Child:
@@ -91,9 +125,12 @@ class Child:
 _context = None
 
 
-def start(command: list[str], output: Path, env: dict[str, str] | None = None, cwd: str | Path | None = None) -> Child:
+def start(command: list[str], output: Path, env: dict[str, str] | None = None, cwd: str | Path | None = None,
+          session: bool = False) -> Child:
     """Fork `command` (`[sys.executable, "-m", "ggns", ...]`) from the forkserver; its stdout and stderr go to
-    files in `output` (a fresh directory per command). env: its whole environment (default: this one's)."""
+    files in `output` (a fresh directory per command). env: its whole environment (default: this one's).
+    session: a session of its own (`os.killpg(child.pid, ...)` reaches all it runs), a sweep's fits and tests
+    forked from it."""
     global _context
     assert command[1:3] == ["-m", "ggns"], command
     if _context is None:
@@ -103,7 +140,7 @@ def start(command: list[str], output: Path, env: dict[str, str] | None = None, c
     output.mkdir(parents=True, exist_ok=False)
     stdout, stderr = output / "stdout", output / "stderr"
     process = _context.Process(target=_main, args=(command[3:], dict(os.environ if env is None else env),
-                                                   str(cwd or os.getcwd()), str(stdout), str(stderr)))
+                                                   str(cwd or os.getcwd()), str(stdout), str(stderr), session))
     process.start()
     return Child(process, command, stdout, stderr)
 

@@ -322,21 +322,18 @@ def _sweep_file(tmp_path: Path, data: Path) -> Path:
 
 
 def _sweep(path: Path, output: Path, kill_when=None) -> int:
-    """`python -m ggns sweep --config path` in its own process group, its stdout and stderr in `output`; SIGKILL
-    to the whole group (the sweep and the fit or test it runs, as a cluster does to a job) once kill_when()
-    holds. Returns the status. Started from scratch, not forked (tests/forked.py): the sweep's own process
-    imports neither torch nor Lightning, and forked it saved nothing measurable (docs/setup.md)."""
-    output.mkdir()
-    with open(output / "stdout", "w") as out, open(output / "stderr", "w") as err:
-        proc = subprocess.Popen([sys.executable, "-m", "ggns", "sweep", "--config", str(path)], cwd=ROOT, stdout=out,
-                                stderr=err, start_new_session=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    """`python -m ggns sweep --config path` in a session of its own, forked with its fits and tests
+    (tests/forked.py), its stdout and stderr in `output`; SIGKILL to the whole group (the sweep and the fit
+    or test it runs, as a cluster does to a job) once kill_when() holds. Returns the status."""
+    child = forked.start([sys.executable, "-m", "ggns", "sweep", "--config", str(path)], output,
+                         env={**os.environ, "OMP_NUM_THREADS": "1"}, cwd=ROOT, session=True)
     deadline = time.time() + 300
-    while kill_when is not None and proc.poll() is None and time.time() < deadline:
+    while kill_when is not None and child.poll() is None and time.time() < deadline:
         if kill_when():
-            os.killpg(proc.pid, signal.SIGKILL)
+            os.killpg(child.pid, signal.SIGKILL)
             break
         time.sleep(0.05)
-    return proc.wait(timeout=300)
+    return child.wait(timeout=300)
 
 
 def test_a_sweep_killed_mid_fit_and_mid_test_finishes_with_the_uninterrupted_metrics(cli_data, tmp_path):

@@ -41,22 +41,30 @@ def _finger_boxes(config, traj) -> list[tuple[torch.Tensor, torch.Tensor]]:
             for t in range(traj.num_steps)]
 
 
-def test_tube_mesh_counts_and_its_surface_graph():
+@pytest.mark.parametrize("preset, around, along", [("cavity", 25, 15), ("cavity_tall", 15, 25)])
+def test_tube_mesh_counts_and_its_surface_graph(preset, around, along):
     """750 nodes, every one on the wall's boundary; the graph is that boundary's triangulation, a
-    closed genus-1 surface with exactly 3 V undirected edges (the paper's 4,500 directed)."""
-    config = load_config("cavity")
+    closed genus-1 surface with exactly 3 V undirected edges (the paper's 4,500 directed); the fixed nodes
+    are the bottom ring of both walls, numbered first (the tall cavity's 0-29: the reference's)."""
+    config = load_config(preset)
     scene = config["scene"]
     spec = cavity.CavitySpec(0, 0.5, 0.6, 0.0, 0.5, (0.0, 0.0, 0.0), 0.3)
     rest, cells, fixed = cavity.cavity_mesh(scene, spec)
     facets = boundary_facets(cells, rest)
     edges = cavity.surface_edges(facets)
-    assert rest.shape == (750, 3) and cells.shape == (6 * 25 * 14, 4)
+    assert (scene["cavity"]["ring_nodes"], scene["cavity"]["levels"]) == (around, along)
+    assert rest.shape == (750, 3) and cells.shape == (6 * around * (along - 1), 4)
     assert len(np.unique(facets)) == 750  # no interior node
     assert 2 * len(edges) == 4500 and len(rest) - len(edges) + len(facets) == 0  # Euler characteristic 0: a torus
-    assert fixed.sum() == 50 and np.flatnonzero(fixed).tolist() == list(range(50))  # the bottom rim, numbered first
+    assert np.flatnonzero(fixed).tolist() == list(range(2 * around))  # the bottom rim, numbered first
     assert np.allclose(rest[fixed, 2], scene["cavity"]["bottom_z"])
-    outer = np.linalg.norm(rest[25:50, :2], axis=1)  # level 0, outer wall: the bottom diameter
+    outer = np.linalg.norm(rest[around:2 * around, :2], axis=1)  # level 0, outer wall: the bottom diameter
     np.testing.assert_allclose(outer, 0.25)
+    inner = np.linalg.norm(rest[:around, :2], axis=1)
+    np.testing.assert_allclose(outer - inner, scene["cavity"]["thickness"])
+    top = rest[-around:]  # the last level's outer wall: the top diameter, `height` above the bottom
+    np.testing.assert_allclose(np.linalg.norm(top[:, :2], axis=1), 0.3)
+    np.testing.assert_allclose(top[:, 2], scene["cavity"]["bottom_z"] + scene["cavity"]["height"])
     finger, faces = cavity.finger_mesh(scene)
     assert 2 * len(finger) == 636 and faces.max() == len(finger) - 1
 

@@ -516,3 +516,26 @@ def test_online_study_feeds_late_frames_and_scores_every_tick(trajs, config):
     np.testing.assert_allclose(blind, ((offline[1:].double().numpy() - world.positions[1:]) ** 2).mean(axis=(1, 2)),
                                rtol=1e-5)
     assert none == 0
+
+
+def test_sensor_presets_scale_to_the_scene_and_every_study_sensor_builds(config):
+    """The named flaws: lengths in metres divided by the scene's metres per unit, the axial coefficient per
+    metre multiplied by it; calibration errors added; unknown names refused naming the known ones. Each of the
+    study's sensors gives a valid SensorConfig of the scene (its cameras: all, or the first n)."""
+    from ggns.bench.online_study import SENSORS, sensor_overrides
+    from ggns.sensors.camera import KINECT_AXIAL_NOISE, SensorConfig, sensor_flaws
+
+    assert sensor_flaws("flawless") == {}
+    real = sensor_flaws("realistic", metres_per_unit=0.1, noise_scale=3.0, calibration="cm")
+    assert real["axial_noise"] == pytest.approx(3 * 0.1 * KINECT_AXIAL_NOISE)
+    assert real["edge_threshold"] == pytest.approx(0.3) and real["outlier_range"] == pytest.approx(1.0)
+    assert real["extrinsic_error"] == pytest.approx((1.0, 1.0, 1.0, 0.1, 0.1, 0.1))
+    assert real["grazing_angle_deg"] == 70.0 and real["outlier_fraction"] == 0.005
+    for bad in ({"preset": "kinect"}, {"calibration": "m"}):
+        with pytest.raises(ValueError, match="known"):
+            sensor_flaws(**bad)
+    cameras = len(config["sensor"]["cameras"])
+    for name, (_, _, _, first) in SENSORS.items():
+        sensor = SensorConfig.from_dict({**config["sensor"], **sensor_overrides(name, config, "plate")})
+        assert len(sensor.cameras) == min(first or cameras, cameras)
+        assert sensor.has_flaws == (name != "none")

@@ -278,33 +278,37 @@ def bench_online(simulator: Sequence[str] = ("plate/ggns", "tissue/ggns"), datas
 
 def bench_online_study(task: Literal["plate", "tissue"] = "tissue", trajectories: int = 3,
                        latency: Sequence[int] = (0, 1, 2, 5),
-                       noise: Sequence[Literal["none", "realistic", "3x"]] = ("none", "realistic", "3x"),
+                       sensor: Sequence[str] = ("none", "axial", "axial_3x"),
                        every: Sequence[int] = (1,), baseline: Sequence[str] = ("mgn", "mgn_m"),
+                       checkpoint: dict[str, str] | None = None,
                        data_dir: str | None = None, output_dir: str = "lightning_logs/online_study",
                        seed: int = 0) -> list[dict]:
-    """The shipped GGNS tracking test trajectories online, fed the virtual cameras' depth frames late and noisy.
+    """The shipped GGNS tracking test trajectories online, fed the virtual cameras' depth frames late and flawed.
 
     The task's shipped GGNS is stepped through its first test trajectories (plate: plate_small, tissue:
     tissue_cpu) with the recorded collider poses and the masked depth images of every r-th tick, each
-    arriving `latency` ticks late, with the axial noise of a Kinect-like camera at 0, 1 and 3 times its
-    coefficient; the blind shipped baselines beside it. Writes online_study_raw.csv (per trajectory) and
-    online_study.md (means and ratios to the blind models) after every trajectory.
+    arriving `latency` ticks late, seen by a flawless or a flawed sensor (`ggns.bench.online_study.SENSORS`);
+    the blind shipped baselines beside it. Writes online_study_raw.csv (per trajectory) and online_study.md
+    (means and ratios to the blind models) after every trajectory.
 
     Args:
         task: the scene whose shipped simulators are run
         trajectories: the first K test trajectories
         latency: ticks between a frame's tick and its arrival
-        noise: sensor noise: none, realistic (the Kinect's axial coefficient in scene units), 3x
+        sensor: none, axial, axial_3x, realistic, realistic_calibration_mm, realistic_calibration_cm,
+            realistic_2_cameras, realistic_1_camera (ggns.bench.online_study.SENSORS)
         every: frames of every r-th tick
         baseline: blind shipped models of the task beside GGNS (e.g. mgn, mgn_m)
+        checkpoint: more GGNS fed the same frames, name=path (e.g. one trained on the flaws it is fed)
         data_dir: the folder of the preset's test.h5 (default: the preset's output)
         output_dir: where online_study_raw.csv and online_study.md go
         seed: of the sensor noise
     """
     from ..bench.online_study import online_study
 
-    return online_study(task, trajectories, latencies=tuple(latency), noises=tuple(noise), every=tuple(every),
-                        baselines=tuple(baseline), data_dir=data_dir, output_dir=output_dir, seed=seed)
+    return online_study(task, trajectories, latencies=tuple(latency), sensors=tuple(sensor), every=tuple(every),
+                        baselines=tuple(baseline), data_dir=data_dir, output_dir=output_dir, seed=seed,
+                        checkpoints=dict(checkpoint or {}))
 
 
 BENCH_COMMANDS = {"sim": bench_sim, "solvers": bench_solvers, "models": bench_models, "tradeoff": bench_tradeoff,

@@ -204,6 +204,55 @@ def back_project(image: DepthImage) -> np.ndarray:
 # the coefficient is c * s (sigma in units = c (z s)^2 / s).
 KINECT_AXIAL_NOISE = 1.6e-3  # per metre
 
+# Named sensor presets: the flaws of a depth camera at the levels a real one shows, lengths in metres
+# (`sensor_flaws` scales them to a scene). Where a value comes from:
+#   axial_noise: the Kinect's quadratic axial noise (Khoshelham & Elberink 2012, above).
+#   grazing_angle_deg: the Kinect's depth noise is about flat up to about 60-70 degrees between the ray and the
+#     surface's normal and rises steeply beyond (Nguyen, Izadi & Lovell 2012, "Modeling Kinect sensor noise for
+#     improved 3D reconstruction and tracking", 3DIMPVT); pixels beyond 70 degrees return nothing.
+#   edge_threshold, outlier_fraction, outlier_range: ours: depth jumps over 3 cm (mixed pixels at an object's
+#     edge) are dropped as an edge filter would, and 0.5 % of the pixels that remain fly up to 10 cm along
+#     their rays.
+SENSOR_FLAWS: dict[str, dict] = {
+    "flawless": {},
+    "axial": {"axial_noise": KINECT_AXIAL_NOISE},
+    "realistic": {"axial_noise": KINECT_AXIAL_NOISE, "grazing_angle_deg": 70.0, "edge_threshold": 0.03,
+                  "outlier_fraction": 0.005, "outlier_range": 0.1},
+}
+# Extrinsic calibration errors (rx, ry, rz degrees; tx, ty, tz metres): "mm", a camera-to-robot calibration
+# as good as hand-eye calibration gets (a few tenths of a degree, 2 mm); "cm", one off by a degree and a
+# centimetre on every axis (ours).
+CALIBRATION_ERRORS: dict[str, tuple[float, ...]] = {
+    "none": (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    "mm": (0.2, 0.2, 0.2, 0.002, 0.002, 0.002),
+    "cm": (1.0, 1.0, 1.0, 0.01, 0.01, 0.01),
+}
+
+
+def sensor_flaws(preset: str = "realistic", metres_per_unit: float = 1.0, noise_scale: float = 1.0,
+                 calibration: str = "none") -> dict:
+    """The `SensorConfig` flaw fields of a named preset (`SENSOR_FLAWS`) for a scene whose unit is
+    `metres_per_unit` metres: lengths divided by it, the axial coefficient (per metre) multiplied by it
+    and by `noise_scale`; `calibration`: a named extrinsic error (`CALIBRATION_ERRORS`) added. Unknown
+    names raise ValueError naming the known ones."""
+    if preset not in SENSOR_FLAWS:
+        raise ValueError(f"unknown sensor preset {preset!r} (known: {sorted(SENSOR_FLAWS)})")
+    if calibration not in CALIBRATION_ERRORS:
+        raise ValueError(f"unknown calibration error {calibration!r} (known: {sorted(CALIBRATION_ERRORS)})")
+    if not float(metres_per_unit) > 0 or not float(noise_scale) >= 0:
+        raise ValueError(f"metres_per_unit must be > 0 and noise_scale >= 0, got {metres_per_unit}, {noise_scale}")
+    s = float(metres_per_unit)
+    out = dict(SENSOR_FLAWS[preset])
+    if "axial_noise" in out:
+        out["axial_noise"] = out["axial_noise"] * s * float(noise_scale)
+    for name in ("edge_threshold", "outlier_range"):
+        if name in out:
+            out[name] = out[name] / s
+    error = CALIBRATION_ERRORS[calibration]
+    if any(error):
+        out["extrinsic_error"] = (*error[:3], *(v / s for v in error[3:]))
+    return out
+
 
 @dataclass(frozen=True)
 class SensorConfig:

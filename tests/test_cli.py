@@ -72,6 +72,36 @@ def ggns_fit(cli_data, tmp_path_factory):
     return logs
 
 
+def test_a_fit_starts_from_a_trained_checkpoints_weights(ggns_fit, cli_data, tmp_path, capsys):
+    """`InitialWeights`: one optimizer step from the trained fit's weights and statistics (each weight within
+    Adam's first step, lr 1e-3, of its trained value; a fresh fit is nowhere near); a checkpoint of other
+    parameter shapes or of another class is refused naming the difference, before any step."""
+    import json
+
+    trained = ggns_fit / "ggns" / "fit" / "checkpoints" / "last.ckpt"
+    start = json.dumps({"class_path": "ggns.callbacks.InitialWeights", "init_args": {"checkpoint": str(trained)}})
+    one_step = ("--trainer.max_steps", "1", "--trainer.limit_val_batches", "0", "--seed_everything", "1")  # another init
+    run_cli(["fit", *cli_args("ggns", cli_data, tmp_path, "tuned", *one_step, f"--trainer.callbacks+={start}")])
+    run_cli(["fit", *cli_args("ggns", cli_data, tmp_path, "fresh", *one_step)])
+    source = torch.load(trained, weights_only=True)["state_dict"]
+    tuned, fresh = (torch.load(tmp_path / "ggns" / v / "checkpoints" / "last.ckpt", weights_only=True)["state_dict"]
+                    for v in ("tuned", "fresh"))
+    floats = [k for k, v in source.items() if v.is_floating_point() and "normalizer" not in k]
+    assert floats and max(float((tuned[k] - source[k]).abs().max()) for k in floats) <= 1.5e-3
+    assert max(float((fresh[k] - source[k]).abs().max()) for k in floats) > 0.05
+    normalizers = [k for k in source if "normalizer" in k]
+    assert normalizers and all(torch.equal(tuned[k], source[k]) for k in normalizers)
+    for config, version, extra, message in (("ggns", "wider", ("--model.init_args.latent", "8"), "in the fit's model"),
+                                            ("mgn", "other", (), "a GGNS, the fit's model is a MGN")):
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as stop:
+            run_cli(["fit", *cli_args(config, cli_data, tmp_path, version, *one_step, f"--trainer.callbacks+={start}",
+                                      *extra)])
+        last = capsys.readouterr().err.strip().splitlines()[-1]
+        assert stop.value.code == 2 and last.startswith(f"error: initial weights {trained}") and message in last, last
+        assert not (tmp_path / config / version / "checkpoints").exists()  # refused before any step
+
+
 def test_cli_fit_logs_and_checkpoints(ggns_fit, cli_data):
     run = ggns_fit / "ggns" / "fit"
     last = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)

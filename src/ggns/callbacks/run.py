@@ -1,5 +1,6 @@
-"""The callbacks of a command-line run itself: its config saved beside its logs (`RunConfigCallback`) and
-its state saved when a SIGTERM stops a fit (`LastCheckpointOnSigterm`)."""
+"""The callbacks of a command-line run itself: its config saved beside its logs (`RunConfigCallback`),
+its state saved when a SIGTERM stops a fit (`LastCheckpointOnSigterm`), and a fit started from another
+checkpoint's weights (`InitialWeights`: fine-tuning a trained simulator, e.g. a shipped one, on new data)."""
 from __future__ import annotations
 
 from pytorch_lightning import Trainer
@@ -28,3 +29,33 @@ class LastCheckpointOnSigterm(Callback):
         for callback in trainer.checkpoint_callbacks:
             if isinstance(callback, ModelCheckpoint) and callback.filename == "last" and callback.dirpath:
                 trainer.save_checkpoint(callback.format_checkpoint_name({}, callback.filename))
+
+
+class InitialWeights(Callback):
+    """A fit that starts from the weights (and the normalization statistics) of a trained simulator's
+    checkpoint, e.g. a shipped one (`python -m ggns pretrained path tissue/ggns`) fine-tuned on one's own
+    data or sensor: `--trainer.callbacks+=ggns.callbacks.InitialWeights --trainer.callbacks.checkpoint <file>`.
+    The optimizer, the lr schedule and the step count start afresh; the statistics are the checkpoint's
+    (no normalization pass). A fit resumed from its own checkpoint (`ckpt_path`) keeps that one's weights.
+    The checkpoint is read as data (`ggns.models.loading.load_simulator`); one of another class or with
+    other parameter shapes is refused naming the first difference."""
+
+    def __init__(self, checkpoint: str):
+        self.checkpoint = str(checkpoint)
+
+    def on_fit_start(self, trainer: Trainer, pl_module) -> None:
+        if trainer.ckpt_path is not None:
+            return
+        from ..models.loading import load_simulator
+
+        trained = load_simulator(self.checkpoint)
+        if type(trained) is not type(pl_module):
+            raise ValueError(f"initial weights {self.checkpoint}: a {type(trained).__name__}, the fit's model is a "
+                             f"{type(pl_module).__name__}")
+        own, theirs = pl_module.state_dict(), trained.state_dict()
+        for key in sorted(set(own) | set(theirs)):
+            if key not in own or key not in theirs or own[key].shape != theirs[key].shape:
+                shapes = [tuple(d[key].shape) if key in d else "missing" for d in (own, theirs)]
+                raise ValueError(f"initial weights {self.checkpoint}: {key} is {shapes[1]} there and {shapes[0]} in "
+                                 f"the fit's model (its hyperparameters differ)")
+        pl_module.load_state_dict(theirs, strict=True)

@@ -10,7 +10,8 @@ back to a file, is a ValueError naming the file.
 Data presets are checked besides: every key a preset sets over its base, and every command-line
 `key=value` override, must already be in the configuration it changes (the root preset defines the
 keys), or loading fails with `UnknownKeyError` naming the key and the nearest valid ones. A typo such
-as `scene.gird_nodes=5` would otherwise be stored and silently ignored.
+as `scene.gird_nodes=5` would otherwise be stored and silently ignored. The one exception: the sensor's
+flaws (`OPTIONAL_KEYS`), off unless a preset sets them.
 
 Lightning settings in sweep, learning and demo files are YAML mappings of the Lightning CLI's keys
 (`overrides: {trainer: {max_time: "00:00:40:00"}, model: {init_args: {latent: 64}}}`) and config
@@ -90,6 +91,12 @@ class UnknownKeyError(ValueError):
     """A preset or an override sets a key that the configuration it changes does not have."""
 
 
+# Keys a data preset may set though the root preset does not: the sensor's flaws, all off unless set
+# (`ggns.sensors.camera.SensorConfig`; their preset values: `SENSOR_FLAWS`).
+OPTIONAL_KEYS = frozenset(f"sensor.{name}" for name in ("axial_noise", "grazing_angle_deg", "edge_threshold",
+                                                        "outlier_fraction", "outlier_range", "extrinsic_error"))
+
+
 def unknown_keys(known: dict, update: dict, prefix: str = "") -> list[str]:
     """The dotted keys of `update` that `known` lacks, each with the nearest known keys at its level
     ("scene.gird_nodes (did you mean scene.grid_nodes?)"). Mappings are compared key by key;
@@ -97,6 +104,8 @@ def unknown_keys(known: dict, update: dict, prefix: str = "") -> list[str]:
     problems = []
     for key, value in update.items():
         path = f"{prefix}{key}"
+        if path in OPTIONAL_KEYS:
+            continue
         if key not in known:
             near = difflib.get_close_matches(str(key), [str(k) for k in known], n=3, cutoff=0.5)
             hint = f" (did you mean {' or '.join(prefix + k for k in near)}?)" if near else \

@@ -41,6 +41,20 @@ def test_a_preset_cannot_add_a_key_to_its_base(tmp_path):
         load_config(tmp_path / "child.yaml")
 
 
+def test_a_preset_may_set_the_sensors_flaws_and_nothing_else_new(tmp_path):
+    """The sensor's flaws (off unless set) are the only keys a preset may add; a misspelt one is refused, and
+    the loaded sensor section builds the flawed SensorConfig."""
+    from ggns.sensors.camera import SensorConfig
+
+    config = load_config("plate_tiny", ["sensor.axial_noise=0.002", "sensor.grazing_angle_deg=70"])
+    sensor = SensorConfig.from_dict(config["sensor"])
+    assert sensor.axial_noise == 0.002 and sensor.grazing_angle_deg == 70.0 and sensor.has_flaws
+    with pytest.raises(UnknownKeyError, match=r"sensor\.axial_nois \(did you mean sensor\.axial_noise"):
+        load_config("plate_tiny", ["sensor.axial_nois=0.002"])
+    with pytest.raises(UnknownKeyError, match=r"scene\.axial_noise"):
+        load_config("plate_tiny", ["scene.axial_noise=0.002"])
+
+
 def test_unknown_keys_compares_mappings_only():
     known = {"a": {"b": 1, "c": [1, 2]}, "d": 2}
     assert unknown_keys(known, {"a": {"c": [3]}, "d": {"x": 1}}) == []  # a list or a scalar replaced whole

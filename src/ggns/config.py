@@ -107,9 +107,10 @@ def unknown_keys(known: dict, update: dict, prefix: str = "") -> list[str]:
         if path in OPTIONAL_KEYS:
             continue
         if key not in known:
-            near = difflib.get_close_matches(str(key), [str(k) for k in known], n=3, cutoff=0.5)
+            optional = [k[len(prefix):] for k in OPTIONAL_KEYS if k.rsplit(".", 1)[0] + "." == prefix]
+            near = difflib.get_close_matches(str(key), [str(k) for k in known] + optional, n=3, cutoff=0.5)
             hint = f" (did you mean {' or '.join(prefix + k for k in near)}?)" if near else \
-                f" (known at this level: {sorted(map(str, known))})"
+                f" (known at this level: {sorted(map(str, known)) + sorted(optional)})"
             problems.append(path + hint)
         elif isinstance(value, dict) and isinstance(known[key], dict):
             problems += unknown_keys(known[key], value, path + ".")

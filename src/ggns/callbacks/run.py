@@ -33,11 +33,12 @@ class LastCheckpointOnSigterm(Callback):
 
 class InitialWeights(Callback):
     """A fit that starts from the weights (and the normalization statistics) of a trained simulator's
-    checkpoint, e.g. a shipped one (`python -m ggns pretrained path tissue/ggns`) fine-tuned on one's own
-    data or sensor: `--trainer.callbacks+=ggns.callbacks.InitialWeights --trainer.callbacks.checkpoint <file>`.
+    checkpoint, e.g. a shipped one fine-tuned on one's own data or sensor: `--trainer.callbacks+='{"class_path":
+    "ggns.callbacks.InitialWeights", "init_args": {"checkpoint": "pretrained:tissue/ggns"}}'` (a shipped
+    simulator's name, verified against its manifest, or a checkpoint file).
     The optimizer, the lr schedule and the step count start afresh; the statistics are the checkpoint's
     (no normalization pass). A fit resumed from its own checkpoint (`ckpt_path`) keeps that one's weights.
-    The checkpoint is read as data (`ggns.models.loading.load_simulator`); one of another class or with
+    The checkpoint is read as data (`ggns.pretrained.load_model`); one of another class or with
     other parameter shapes is refused naming the first difference."""
 
     def __init__(self, checkpoint: str):
@@ -46,9 +47,9 @@ class InitialWeights(Callback):
     def on_fit_start(self, trainer: Trainer, pl_module) -> None:
         if trainer.ckpt_path is not None:
             return
-        from ..models.loading import load_simulator
+        from ..pretrained import load_model
 
-        trained = load_simulator(self.checkpoint)
+        trained = load_model(self.checkpoint)
         if type(trained) is not type(pl_module):
             raise ValueError(f"initial weights {self.checkpoint}: a {type(trained).__name__}, the fit's model is a "
                              f"{type(pl_module).__name__}")

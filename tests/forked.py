@@ -14,11 +14,12 @@ ggns` resolving the package; test_cli, test_install), what a process inherits be
 
 A sweep (`start(..., session=True)`) is forked into a session of its own, so that a SIGKILL to its
 process group ends it and whatever it runs, as a cluster ends a job; each fit and test it runs is forked
-from it in turn (`fork_run`), so none of them imports torch and Lightning again either."""
+from it in turn (`_ForkingSubprocess`), so none of them imports torch and Lightning again either."""
 from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -85,10 +86,17 @@ class _ForkingSubprocess:
         sys.stdout.flush()
         sys.stderr.flush()
         pid = os.fork()
-        if pid == 0:
-            for fd in (1, 2):
-                os.dup2(stdout.fileno(), fd)
-            _run_main(command[3:], env, os.getcwd())
+        if pid == 0:  # the child never returns into the sweep: any failure ends it with status 1
+            try:
+                for fd in (1, 2):
+                    os.dup2(stdout.fileno(), fd)
+                _run_main(command[3:], env, os.getcwd())
+            except BaseException:
+                import traceback
+
+                traceback.print_exc()
+            finally:
+                os._exit(1)
         _, status = os.waitpid(pid, 0)
         return subprocess.CompletedProcess(command, os.waitstatus_to_exitcode(status))
 
@@ -96,8 +104,10 @@ class _ForkingSubprocess:
 class Child:
     """One forked `python -m ggns ...`: `pid`, `poll()`, `wait()`, and its output once it ended."""
 
-    def __init__(self, process: multiprocessing.Process, command: list[str], stdout: Path, stderr: Path):
+    def __init__(self, process: multiprocessing.Process, command: list[str], stdout: Path, stderr: Path,
+                 session: bool = False):
         self.process, self.command, self.stdout_path, self.stderr_path = process, command, stdout, stderr
+        self.session = session  # its own process group: a kill goes to all it runs
 
     @property
     def pid(self) -> int:
@@ -111,7 +121,10 @@ class Child:
         `subprocess.run` does, and TimeoutExpired raised."""
         self.process.join(timeout)
         if self.process.exitcode is None:
-            self.process.kill()
+            if self.session:
+                os.killpg(self.process.pid, signal.SIGKILL)
+            else:
+                self.process.kill()
             self.process.join()
             raise subprocess.TimeoutExpired(self.command, timeout)
         return self.process.exitcode
@@ -142,7 +155,7 @@ def start(command: list[str], output: Path, env: dict[str, str] | None = None, c
     process = _context.Process(target=_main, args=(command[3:], dict(os.environ if env is None else env),
                                                    str(cwd or os.getcwd()), str(stdout), str(stderr), session))
     process.start()
-    return Child(process, command, stdout, stderr)
+    return Child(process, command, stdout, stderr, session)
 
 
 def run(command: list[str], output: Path, env: dict[str, str] | None = None, cwd: str | Path | None = None,

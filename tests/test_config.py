@@ -53,6 +53,9 @@ def test_a_preset_may_set_the_sensors_flaws_and_nothing_else_new(tmp_path):
         load_config("plate_tiny", ["sensor.axial_nois=0.002"])
     with pytest.raises(UnknownKeyError, match=r"scene\.axial_noise"):
         load_config("plate_tiny", ["scene.axial_noise=0.002"])
+    (tmp_path / "dotted.yaml").write_text(f"base: {CONF_DIR / 'data' / 'plate_tiny.yaml'}\nsensor.axial_noise: 0.002\n")
+    with pytest.raises(UnknownKeyError, match=r"sensor\.axial_noise"):  # a dotted top-level key is not the flaw
+        load_config(tmp_path / "dotted.yaml")
 
 
 def test_unknown_keys_compares_mappings_only():

@@ -534,8 +534,14 @@ def test_sensor_presets_scale_to_the_scene_and_every_study_sensor_builds(config)
     for bad in ({"preset": "kinect"}, {"calibration": "m"}):
         with pytest.raises(ValueError, match="known"):
             sensor_flaws(**bad)
-    cameras = len(config["sensor"]["cameras"])
-    for name, (_, _, _, first) in SENSORS.items():
-        sensor = SensorConfig.from_dict({**config["sensor"], **sensor_overrides(name, config, "plate")})
-        assert len(sensor.cameras) == min(first or cameras, cameras)
-        assert sensor.has_flaws == (name != "none")
+    tissue = load_config("tissue_tiny")
+    for scene, task in ((config, "plate"), (tissue, "tissue")):  # 1 and 5 cameras
+        cameras = len(scene["sensor"]["cameras"])
+        for name, (_, _, _, first) in SENSORS.items():
+            sensor = SensorConfig.from_dict({**scene["sensor"], **sensor_overrides(name, scene, task)})
+            assert len(sensor.cameras) == min(first or cameras, cameras)
+            assert sensor.cameras[0] == SensorConfig.from_dict(scene["sensor"]).cameras[0]  # the first ones kept
+            assert sensor.has_flaws == (name != "none")
+    # the fine-tuning's flawed data preset holds the realistic preset's values for its scene in metres
+    flawed = load_config("tissue_cpu_60_realistic")["sensor"]
+    assert {k: flawed[k] for k in sensor_flaws("realistic")} == pytest.approx(sensor_flaws("realistic"))

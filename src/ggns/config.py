@@ -104,7 +104,7 @@ def unknown_keys(known: dict, update: dict, prefix: str = "") -> list[str]:
     problems = []
     for key, value in update.items():
         path = f"{prefix}{key}"
-        if path in OPTIONAL_KEYS:
+        if path in OPTIONAL_KEYS and "." not in str(key):  # `sensor: {axial_noise: ..}`, not a dotted top-level key
             continue
         if key not in known:
             optional = [k[len(prefix):] for k in OPTIONAL_KEYS if k.rsplit(".", 1)[0] + "." == prefix]
@@ -195,11 +195,12 @@ def load_layered(path: str | Path, kind: str, replace: Sequence[str] = (), check
     change keys its bases have (`checked_merge`, the data presets' rule)."""
     chain = _chain(Path(path), kind)
     key = (kind, tuple(replace), check, tuple((str(file.resolve()), file.read_text()) for file, _ in chain))
-    if key not in _LAYERED:
+    merged = _LAYERED.get(key)
+    if merged is None:
         if len(_LAYERED) >= 256:
             _LAYERED.clear()
-        _LAYERED[key] = _merge_chain(chain, replace, check)
-    return copy.deepcopy(_LAYERED[key])
+        merged = _LAYERED[key] = _merge_chain(chain, replace, check)
+    return copy.deepcopy(merged)
 
 
 _LAYERED: dict[tuple, dict] = {}

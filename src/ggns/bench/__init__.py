@@ -10,7 +10,7 @@
     tradeoff.py  the speed/accuracy trade: simulator at coarser time steps against learned
                  simulators (`tradeoff`)
     online.py    the online simulator's time per tick, without and with an observation (`bench online`)
-    online_study.py  tracking error of the online simulator fed (late, noisy) depth frames against the
+    online_study.py  tracking error of the online simulator fed (late, flawed) depth frames against the
                  blind baselines (`bench online-study`)
 
 `python -m ggns bench learning` (learning per CPU-second) is an experiment that runs fits:

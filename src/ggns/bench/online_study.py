@@ -12,7 +12,9 @@ at tick t the frame of tick t - latency, when t - latency is a multiple of r. Th
 (`ggns.sensors.camera.SENSOR_FLAWS`: that axial noise, no return at grazing angles beyond 70 degrees, depth
 edges dropped, 0.5 % flying pixels), alone, with a calibration error of millimetres or of a centimetre
 (`CALIBRATION_ERRORS`), or with only the first 2 or 1 of the scene's cameras; scaled to the scene (both are
-in metres), drawn per frame from a generator seeded by (seed, trajectory, sensor). The masks crop the frames
+in metres), drawn per frame from a generator seeded by (seed, trajectory, the sensor's place in `SENSORS`:
+a new sensor goes at its end, so that the others keep their draws; each sensor draws its own noise). The
+masks crop the frames
 (a segmentation is assumed).
 
 The tracking error of a run is the mean over its predicted ticks 1..T-1 of the mesh's MSE against the true
@@ -131,6 +133,9 @@ def online_study(task: str = "tissue", trajectories: int = 3, latencies: Sequenc
     digests = {name: model.manifest["sha256"] for name, model in models.items()}
     for name, path in (checkpoints or {}).items():
         models[name], digests[name] = load_simulator(path).eval(), sha256(path)
+    taken = sorted(set(checkpoints or {}) & set(names))
+    if taken:
+        raise ValueError(f"checkpoint names {taken} are the shipped models' names: name them otherwise")
     grounded = [names[0], *(checkpoints or {})]
     config, worlds = first_test_trajectories(preset, trajectories, data_dir, names[0])
     depth = DepthProcessing.from_sensor_config(config["sensor"])
@@ -142,11 +147,12 @@ def online_study(task: str = "tissue", trajectories: int = 3, latencies: Sequenc
         errors, fed = track(model, world, frames, r or 1, d, depth)
         manifest = getattr(model, "manifest", None) or {}
         reference, metric = manifest_reference(manifest, i, r, d, sensor)
-        cameras = SENSORS[sensor][3] if sensor in SENSORS else None
+        cameras = len(sensor_overrides(sensor, config, task).get("cameras", config["sensor"]["cameras"])) \
+            if sensor in SENSORS else None
         rows.append({"task": task, "preset": preset, "model": name, "sha256": digests[name],
                      "trajectory": i, "poissons ratio": world.poissons_ratio, "every": r if r else "never",
                      "latency": d if r else "-", "sensor": sensor,
-                     "cameras": "-" if sensor == "-" else (cameras or len(config["sensor"]["cameras"])),
+                     "cameras": "-" if cameras is None else cameras,
                      "frames fed": fed, "tracking mse": float(errors.mean()), "last tick mse": float(errors[-1]),
                      "manifest mse": reference, "manifest metric": metric,
                      "seconds": round(time.perf_counter() - start, 2)})

@@ -49,7 +49,10 @@ class InitialWeights(Callback):
             return
         from ..pretrained import load_model
 
-        trained = load_model(self.checkpoint)
+        try:
+            trained = load_model(self.checkpoint)
+        except (OSError, ValueError) as error:
+            raise ValueError(f"initial weights {self.checkpoint}: {error}") from error
         if type(trained) is not type(pl_module):
             raise ValueError(f"initial weights {self.checkpoint}: a {type(trained).__name__}, the fit's model is a "
                              f"{type(pl_module).__name__}")

@@ -278,7 +278,9 @@ def bench_online(simulator: Sequence[str] = ("plate/ggns", "tissue/ggns"), datas
 
 def bench_online_study(task: Literal["plate", "tissue"] = "tissue", trajectories: int = 3,
                        latency: Sequence[int] = (0, 1, 2, 5),
-                       sensor: Sequence[str] = ("none", "axial", "axial_3x"),
+                       sensor: Sequence[Literal["none", "axial", "axial_3x", "realistic", "realistic_calibration_mm",
+                                                "realistic_calibration_cm", "realistic_2_cameras",
+                                                "realistic_1_camera"]] = ("none", "axial", "axial_3x"),
                        every: Sequence[int] = (1,), baseline: Sequence[str] = ("mgn", "mgn_m"),
                        checkpoint: dict[str, str] | None = None,
                        data_dir: str | None = None, output_dir: str = "lightning_logs/online_study",
@@ -302,7 +304,7 @@ def bench_online_study(task: Literal["plate", "tissue"] = "tissue", trajectories
         checkpoint: more GGNS fed the same frames, name=path (e.g. one trained on the flaws it is fed)
         data_dir: the folder of the preset's test.h5 (default: the preset's output)
         output_dir: where online_study_raw.csv and online_study.md go
-        seed: of the sensor noise
+        seed: of the sensor's random flaws
     """
     from ..bench.online_study import online_study
 

@@ -298,7 +298,8 @@ def run_online(task: str = "tissue", output: str | Path = "lightning_logs/demo",
     from ..bench.online_study import track
     from ..config import load_config
     from ..online import DepthProcessing
-    from ..sensors.camera import KINECT_AXIAL_NOISE
+    from ..bench.online_study import METRES_PER_UNIT
+    from ..sensors.camera import sensor_flaws
 
     if every < 1 or latency < 0 or noise < 0:
         raise ValueError(f"need every >= 1, latency >= 0 and noise >= 0; got {every}, {latency}, {noise}")
@@ -315,7 +316,8 @@ def run_online(task: str = "tissue", output: str | Path = "lightning_logs/demo",
         check_data(spec["pretrained"][key], config, dim=world.dim, source=f"data preset {spec['data']!r}")
     print(f"[online] {spec['data']} test trajectory {trajectory}: a frame every {every} ticks, {latency} late, "
           f"axial noise {noise:g}x the Kinect's")
-    frames = camera_frames(config, world, {"axial_noise": noise * KINECT_AXIAL_NOISE}, np.random.default_rng(seed))
+    flaws = sensor_flaws("axial", METRES_PER_UNIT[task], noise_scale=noise)
+    frames = camera_frames(config, world, flaws, np.random.default_rng(seed))
     depth = DepthProcessing.from_sensor_config(config["sensor"])
     curves = {f"GGNS, a frame every {every} ticks, {latency} late": track(models["ggns"], world, frames, every,
                                                                            latency, depth)[0],

@@ -310,3 +310,42 @@ def test_the_cavity_diagnosis_script_splits_by_wall_and_reports_finite_numbers(t
     assert 0 <= report["data"][0]["coverage"]["seen"] <= 1
     assert set(report["data"][0]["shape_tangential_left"]) == {"all"} | {f"{t.poissons_ratio:g}" for t in val}
     assert set(report["model"]["by_material_split"]["static"]) == set(report["model"]["by_material"]["k1"])
+
+
+def test_grounding_ratios_pairs_each_seed_and_tells_the_mean_of_ratios_from_the_ratio_of_means(tmp_path, monkeypatch):
+    """experiments/cavity_mesh/scripts/grounding_ratios.py on test metrics written as a sweep writes them:
+    each seed's MGN over the same seed's GGNS k=1; a seed that only GGNS finished is left out; the mean of the
+    per-seed ratios differs from the ratio of the seed means, and both are reported; no finished seed is an error."""
+    import importlib.util
+    import json
+    import sys
+    from pathlib import Path
+
+    def write(model, seed, **metrics):
+        folder = tmp_path / "sweep" / model / f"seed_{seed}_test"
+        folder.mkdir(parents=True)
+        (folder / "test_metrics.json").write_text(json.dumps(
+            {k: {"mean": v, "std": 0.0, "trajectories": 27} for k, v in metrics.items()} | {"checkpoints": {}}))
+    write("ggns_partition", 0, rollout_mse_k1=1e-4, rollout_mse_never=3e-4)
+    write("ggns_partition", 1, rollout_mse_k1=2e-4, rollout_mse_never=3e-4)
+    write("ggns_partition", 2, rollout_mse_k1=5e-5, rollout_mse_never=3e-4)  # no MGN for seed 2
+    write("mgn", 0, rollout_mse_never=2e-4)
+    write("mgn", 1, rollout_mse_never=8e-4)
+    write("mgn_m", 0, rollout_mse_never=1e-4)
+    path = Path(__file__).resolve().parents[1] / "experiments" / "cavity_mesh" / "scripts" / "grounding_ratios.py"
+    spec = importlib.util.spec_from_file_location("grounding_ratios", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    out = tmp_path / "ratios.md"
+    monkeypatch.setattr(sys, "argv", ["grounding_ratios.py", "--sweep", str(tmp_path / "sweep"), "--output", str(out)])
+    script.main()
+    text = out.read_text()
+    assert "| 0 | 1.000e-04 | 3.000e-04 | 2.000e-04 | 1.000e-04 | 2.00 | 1.00 |" in text
+    assert "| 1 | 2.000e-04 | 3.000e-04 | 8.000e-04 | - | 4.00 | - |" in text
+    assert "| 2 |" not in text
+    # per seed 2 and 4: mean 3.00; seed means 5e-4 / 1.5e-4 = 3.33
+    assert "MGN / GGNS k=1 3.00 (2 seeds, range 2.00-4.00); MGN(M) / GGNS k=1 1.00 (1 seeds" in text
+    assert "Ratio of the seed means: MGN / GGNS k=1 3.33; MGN(M) / GGNS k=1 1.00." in text
+    monkeypatch.setattr(sys, "argv", ["grounding_ratios.py", "--sweep", str(tmp_path / "empty")])
+    with pytest.raises(SystemExit, match="no seed"):
+        script.main()

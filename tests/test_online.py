@@ -545,3 +545,19 @@ def test_sensor_presets_scale_to_the_scene_and_every_study_sensor_builds(config)
     # the fine-tuning's flawed data preset holds the realistic preset's values for its scene in metres
     flawed = load_config("tissue_cpu_60_realistic")["sensor"]
     assert {k: flawed[k] for k in sensor_flaws("realistic")} == pytest.approx(sensor_flaws("realistic"))
+
+
+def test_the_online_study_command_offers_every_study_sensor_and_refuses_a_checkpoint_named_as_a_shipped_model(tmp_path):
+    """`bench online-study --sensor` lists its choices for the command line; they are the study's SENSORS, no
+    more and no fewer. A checkpoint given the name of a shipped model it is compared with is refused before
+    any model loads (it would replace that model's rows)."""
+    import typing
+
+    from ggns.bench.online_study import SENSORS, online_study
+    from ggns.cli.bench import bench_online_study
+
+    (choices,) = typing.get_args(typing.get_type_hints(bench_online_study)["sensor"])
+    assert set(typing.get_args(choices)) == set(SENSORS)
+    with pytest.raises(ValueError, match=r"checkpoint names \['tissue/mgn'\] are the shipped models' names"):
+        online_study("tissue", checkpoints={"tissue/mgn": str(tmp_path / "absent.ckpt")}, output_dir=tmp_path)
+    assert not list(tmp_path.iterdir())

@@ -129,13 +129,13 @@ def online_study(task: str = "tissue", trajectories: int = 3, latencies: Sequenc
     torch.set_num_threads(1)
     preset = DATA_PRESETS[task]
     names = [f"{task}/ggns"] + [f"{task}/{b}" for b in baselines]
+    taken = sorted(set(checkpoints or {}) & set(names))
+    if taken:
+        raise ValueError(f"checkpoint names {taken} are the shipped models' names: name them otherwise")
     models = {name: load(name).eval() for name in names}  # sha256 checked against the manifest on loading
     digests = {name: model.manifest["sha256"] for name, model in models.items()}
     for name, path in (checkpoints or {}).items():
         models[name], digests[name] = load_simulator(path).eval(), sha256(path)
-    taken = sorted(set(checkpoints or {}) & set(names))
-    if taken:
-        raise ValueError(f"checkpoint names {taken} are the shipped models' names: name them otherwise")
     grounded = [names[0], *(checkpoints or {})]
     config, worlds = first_test_trajectories(preset, trajectories, data_dir, names[0])
     depth = DepthProcessing.from_sensor_config(config["sensor"])

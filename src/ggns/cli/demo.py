@@ -295,10 +295,9 @@ def run_online(task: str = "tissue", output: str | Path = "lightning_logs/demo",
     GGNS, MGN and MGN(M). Writes online.png (the mesh MSE against the true state at each tick), online.json
     (the per-tick errors and the settings) and online.md into <output>/<task>/; returns online.md."""
     from ..bench.online import camera_frames
-    from ..bench.online_study import track
+    from ..bench.online_study import METRES_PER_UNIT, track
     from ..config import load_config
     from ..online import DepthProcessing
-    from ..bench.online_study import METRES_PER_UNIT
     from ..sensors.camera import sensor_flaws
 
     if every < 1 or latency < 0 or noise < 0:

@@ -3,6 +3,7 @@ test trajectories, the pictures, GGNS trained from scratch through the Lightning
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 from PIL import Image
@@ -67,9 +68,18 @@ def test_the_demo_runs_end_to_end_on_tiny_sizes(tiny_registry, cli_data, tmp_pat
     report = run_demo("plate", tmp_path, minutes=0.5, spec=spec)
     out = tmp_path / "plate"
     text = report.read_text()
-    assert "x below MGN" in text or "x above" in text
-    assert "GGNS (paper)" in text and "`rollout_mse_k1`" in text and "## GGNS from scratch" in text
     results = json.loads((out / "results.json").read_text())
+    # the claim: MGN's full rollout over GGNS k=1 as computed from the results, each model's budget beside it
+    ratio = results["ratio_mgn_over_ggns_k1"]
+    mgn = results["results"]["mgn"]["rollout_mse_never"]["mean"]
+    assert ratio == pytest.approx(mgn / results["results"]["ggns"]["rollout_mse_k1"]["mean"], rel=1e-12)
+    relation = f"{ratio:.1f}x below MGN" if ratio >= 1 else f"{1 / ratio:.1f}x above MGN"
+    claim = next(line for line in text.splitlines() if line.startswith("GGNS with a point cloud every step"))
+    assert relation in claim, claim
+    for key in ("ggns", "mgn", "mgn_m"):
+        words = pretrained.budget_text(pretrained.manifest(f"tiny/{key}"))
+        assert re.fullmatch(r"[\d,]+ steps.*", words) and f"trained {words}" in claim, (key, words, claim)
+    assert "GGNS (paper)" in text and "`rollout_mse_k1`" in text and "## GGNS from scratch" in text
     assert set(results["results"]) == {"ggns", "mgn", "mgn_m"}
     assert results["results"]["ggns"]["rollout_mse_k1"]["count"] == 2
     for name in ("rollouts.png", "error_over_time.png", "learning.png"):

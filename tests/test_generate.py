@@ -25,7 +25,10 @@ def tiny_dataset(tmp_path_factory):
 def test_generation_is_deterministic_and_independent_of_workers(tiny_dataset, tmp_path):
     again = dict(tiny_dataset, output=str(tmp_path), workers=2)
     generate(again, ["train"], progress=False)
-    for a, b in zip(read_trajectories(split_path(tiny_dataset["output"], "train")), read_trajectories(split_path(tmp_path, "train"))):
+    first = list(read_trajectories(split_path(tiny_dataset["output"], "train")))
+    second = list(read_trajectories(split_path(tmp_path, "train")))
+    assert len(first) == len(second) == tiny_dataset["splits"]["train"] > 0
+    for a, b in zip(first, second):
         _assert_same(a, b)
 
 
@@ -53,7 +56,10 @@ def test_splits_are_balanced_and_described(tiny_dataset):
 
 def test_every_point_lies_on_the_deformed_plate(tiny_dataset):
     tolerance = tiny_dataset["sensor"]["voxel_size"]  # voxel centroids of hits on the object
-    for traj in read_trajectories(split_path(tiny_dataset["output"], "test")):
+    trajectories = list(read_trajectories(split_path(tiny_dataset["output"], "test")))
+    assert len(trajectories) == tiny_dataset["splits"]["test"] > 0
+    for traj in trajectories:
+        assert traj.num_steps > 1
         for t in range(traj.num_steps):
             region = shapely.union_all(shapely.polygons(traj.positions[t][traj.cells]))
             points = shapely.points(traj.point_cloud(t).astype(np.float64))

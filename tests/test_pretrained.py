@@ -45,11 +45,29 @@ def test_an_entry_trains_its_sweep_run_with_its_overrides():
     for name, entry in spec["entries"].items():
         if not name.endswith("/ggns"):
             ggns = pretrained.training_budget(pretrained.manifest(name.split("/")[0] + "/ggns"))
-            assert entry["overrides"]["trainer.max_steps"] == ggns["last_validation_step"], name
+            assert entry["overrides"]["trainer.max_steps"] == ggns["optimizer_steps"], name
     command = train_command("plate/mgn", spec)
     assert command[:4] == ["python", "-m", "ggns", "fit"]
     assert [command[i + 1] for i, a in enumerate(command) if a == "--config"] == [
         "conf/plate/mgn.yaml", "conf/profiles/cpu.yaml", "conf/profiles/cpu_model.yaml"]
+
+
+# Tasks whose shipped baselines are still the earlier, shorter fits (docs/pretrained.md, "Budgets"): the test
+# below fails for them, as it should, until they are retrained at their GGNS's steps and packaged (a strict
+# xfail: it fails the suite once they pass, so this set cannot outlive the files it names)
+SHORT_BASELINES = {"cavity", "plate", "tissue"}
+
+
+@pytest.mark.parametrize("task", sorted({name.split("/")[0] for name in SHIPPED}))
+def test_every_shipped_baseline_ran_at_least_its_ggns_optimizer_steps(task, request):
+    if task in SHORT_BASELINES:
+        request.applymarker(pytest.mark.xfail(strict=True, reason=f"{task}'s shipped baselines ran fewer steps"))
+    ggns = pretrained.training_budget(pretrained.manifest(f"{task}/ggns"))["optimizer_steps"]
+    baselines = [name for name in SHIPPED if name.startswith(f"{task}/") and name != f"{task}/ggns"]
+    assert ggns and baselines
+    short = {name: steps for name in baselines
+             if (steps := pretrained.training_budget(pretrained.manifest(name))["optimizer_steps"]) < ggns}
+    assert not short, f"{task}: GGNS ran {ggns} optimizer steps, its baselines {short}"
 
 
 def test_every_entry_of_the_spec_is_shipped():
@@ -107,6 +125,12 @@ def test_packaging_writes_a_complete_manifest(tiny_registry):
     assert manifest["test"]["trajectories"] == 2
     assert len(manifest["test"]["per_trajectory"]["rollout_mse_k1"]) == 2
     assert "val/rollout_mse_k1" in manifest["validation"]
+    # the fit's optimizer steps (its last checkpoint's), which its last validation also ran at (the fallback of
+    # `training_budget` for manifests written before packaging recorded them)
+    steps = manifest["trained_by"]["optimizer_steps"]
+    assert steps >= manifest["source"]["global_step"] > 0
+    assert steps == max(step for curve in manifest["validation"].values() for step, _ in curve)
+    assert pretrained.training_budget(manifest)["optimizer_steps"] == steps
     # the cut checkpoint keeps no optimizer state and reads as data
     checkpoint = read_checkpoint(registry / "tiny" / "ggns.ckpt")
     assert "optimizer_states" not in checkpoint and checkpoint[FORMAT_KEY] == 1
@@ -224,7 +248,15 @@ def test_a_shipped_simulators_budget_is_read_from_its_training_command():
     command = "python -m ggns fit --trainer.max_time 00:00:15:00 --trainer.max_steps 9474 --trainer.max_time null"
     budget = pretrained.training_budget({"trained_by": {"command": command}})
     assert (budget["max_time_minutes"], budget["max_steps"]) == (None, 9474)
-    assert pretrained.budget_text({"trained_by": {"command": command}}) == "9474 steps"
-    assert pretrained.budget_text({"trained_by": {"command": "x --trainer.max_time 00:01:30:00"}}) == "90 min"
+    # the budget in words is the optimizer steps the fit ran (its last validation, or what packaging recorded)
+    assert budget["optimizer_steps"] is None
+    curves = {"validation": {"val/rollout_mse_never": [[2000.0, 1.0], [4036.0, 0.5]]}}
+    assert pretrained.training_budget({"trained_by": {"command": command}, **curves})["optimizer_steps"] == 4036
+    assert pretrained.budget_text({"trained_by": {"command": command}, **curves}) == "4,036 steps"
+    recorded = {"trained_by": {"command": command, "optimizer_steps": 9474}, **curves}
+    assert pretrained.budget_text(recorded) == "9,474 steps"
+    assert pretrained.budget_text({"trained_by": {"command": "x --trainer.max_time 00:01:30:00"}, **curves}) == \
+        "4,036 steps (90 min budget)"
+    assert pretrained.budget_text({"trained_by": {"command": "x --trainer.max_time 00:01:30:00"}}) == "90 min budget"
     assert pretrained.budget_text({"trained_by": {"command": "x"}}) == "-"
-    assert pretrained.budget_text(pretrained.manifest("plate/ggns")) == "40 min"
+    assert pretrained.budget_text(pretrained.manifest("plate/ggns")) == "28,111 steps (40 min budget)"

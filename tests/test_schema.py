@@ -203,7 +203,9 @@ def test_killed_writer_leaves_no_final_file(tmp_path: Path) -> None:
         proc.wait(10)
     assert proc.returncode == -signal.SIGKILL
     assert not path.exists()
-    for leftover in tmp_path.iterdir():
+    leftovers = list(tmp_path.iterdir())
+    assert len(leftovers) == 1, leftovers  # the writer had appended a trajectory when it was killed
+    for leftover in leftovers:
         assert leftover.name.startswith(".train.h5.partial-")
         with pytest.raises(DatasetError, match="incomplete|not a readable HDF5 file"):
             SplitReader(leftover)

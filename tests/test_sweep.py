@@ -232,6 +232,30 @@ def test_every_run_of_every_sweep_preset_parses(preset, tmp_path):
         assert cli.model.hparams.connectivity.startswith(f"{scene}_")  # the model's graph is the data's scene's
 
 
+def _last(args: tuple, option: str) -> str | None:
+    values = [args[i + 1] for i, a in enumerate(args) if a == option]
+    return values[-1] if values else None
+
+
+EQUAL_STEP_PRESETS = sorted([p.stem for p in (CONF_DIR / "sweeps").glob("*.yaml")] + ["plate_equal_steps"])
+
+
+@pytest.mark.parametrize("preset", EQUAL_STEP_PRESETS)
+def test_a_shipped_sweep_gives_every_model_the_same_optimizer_steps(preset, tmp_path):
+    """The shipped presets and the plate's equal-step study budget every model in optimizer steps (or, the
+    paper-scale ones, in epochs of the same data and batch), never in wall time: a comparison between their
+    models is one at equal training."""
+    runs = {r.model: r.fit_command() for r in runs_of(load_sweep(preset, [f"output={tmp_path}"]))}
+    assert len(runs) >= 3
+    budgets = {model: (_last(args, "--trainer.max_steps"), _last(args, "--trainer.max_epochs"),
+                       _last(args, "--data.batch_size")) for model, args in runs.items()}
+    assert len(set(budgets.values())) == 1, budgets
+    for model, args in runs.items():
+        assert _last(args, "--trainer.max_time") in (None, "null"), (preset, model)
+    steps, epochs, _ = next(iter(budgets.values()))
+    assert steps is not None or preset in ("plate", "tissue", "cavity"), preset  # the GPU presets: epochs
+
+
 def test_missing_datasets_are_generated_once_before_parallel_runs(cli_data, tmp_path):
     """`prepare_datasets` generates the split files the runs need into the directory they name, once
     for runs sharing a dataset; a second call finds them and generates nothing."""

@@ -336,9 +336,8 @@ def pretrained_list() -> list[str]:
         family = m["source"]["family"]
         metric = m["test"]["metrics"].get(f"rollout_mse_{family}", {}).get("mean")
         print(f"{name:14s} {m['class']:6s} {m['bytes'] / 1024:5.0f} KB  data {m['data']['preset']:10s} "
-              f"budget {budget_text(m):>11s} "
-              f"{m['source']['global_step']:6d} steps  test rollout_mse_{family} {metric:.3e} "
-              f"({m['test']['trajectories']} trajectories)")
+              f"trained {budget_text(m):>28s}  file from step {m['source']['global_step']:<6d} "
+              f"test rollout_mse_{family} {metric:.3e} ({m['test']['trajectories']} trajectories)")
     return shipped
 
 

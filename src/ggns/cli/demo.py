@@ -238,7 +238,7 @@ def run_demo(task: str = "plate", output: str | Path = "lightning_logs/demo", mi
     report = write_report(spec, task, results, sentence, figures, scratch, models, output,
                           time.perf_counter() - start)
     write_json(output / "results.json", {"task": task, "results": results, "ratio_mgn_over_ggns_k1": ratio})
-    print(f"\nmain job done in {time.perf_counter() - start:.0f} s")
+    print(f"\ndemo done in {time.perf_counter() - start:.0f} s")
     print(f"report:   {report}\npictures: {', '.join(map(str, figures))}\nmetrics:  {output / 'results.json'}")
     if scratch:
         print(f"training logs: {scratch['log_dir']} (tensorboard --logdir {output})")
@@ -248,7 +248,8 @@ def run_demo(task: str = "plate", output: str | Path = "lightning_logs/demo", mi
 def write_report(spec: dict, task: str, results: dict, sentence: str, figures: list[Path], scratch: dict | None,
                  models: dict, output: Path, seconds: float) -> Path:
     count = next(iter(next(iter(results.values())).values()))["count"]
-    lines = [f"# Main job: pretrained GGNS, MGN and MGN(M) on {task}", "",
+    title = f"# The shipped {task} simulators (GGNS, MGN, MGN(M)) on {count} test trajectories"
+    lines = [title + (", and a GGNS trained from scratch" if scratch else ""), "",
              f"Made on this machine ({os.cpu_count()} CPU cores) in {seconds / 60:.1f} min: {count} test trajectories of "
              f"the `{spec['data']}` preset generated here, the shipped simulators "
              f"({', '.join(f'`{n}`' for n in spec['pretrained'].values())}) rolled out from the initial state.", "",
@@ -259,7 +260,7 @@ def write_report(spec: dict, task: str, results: dict, sentence: str, figures: l
              "trajectories, in squared task-space units; MGN never sees point clouds. The paper's columns are its "
              "test figures (full rollouts read off its bar charts, `-` where it gives none).", "",
              results_table(spec, results), ""]
-    lines += ["| simulator | trained | budget | optimizer steps of the file | parameters | "
+    lines += ["| simulator | trained | optimizer steps of its fit | file from step | parameters | "
               "manifest test (same trajectories) |",
               "|---|---|---|---|---|---|"]
     for key, model in models.items():

@@ -62,9 +62,11 @@ def manifest(name: str) -> dict:
 
 
 def training_budget(manifest: dict) -> dict:
-    """What a shipped simulator's training run was given and used, from its manifest: `max_time_minutes`
-    (the fit's wall-clock budget, its command's last `--trainer.max_time`; None without one), `max_steps` (its
-    command's last `--trainer.max_steps`; None without one), `fit_minutes` (its
+    """What a shipped simulator's training run was given and used, from its manifest: `optimizer_steps` (the
+    optimizer steps its fit ran: the manifest's `trained_by.optimizer_steps`, the run's last checkpoint's step,
+    where packaging wrote it, else `last_validation_step`, since every fit validates at its last step),
+    `max_time_minutes` (the fit's wall-clock budget, its command's last `--trainer.max_time`; None without
+    one), `max_steps` (its command's last `--trainer.max_steps`; None without one), `fit_minutes` (its
     first to last logged event), `last_validation_step` (the newest step of its validation curves) and
     `selected_step` (the step of the checkpoint shipped)."""
     import re
@@ -84,17 +86,22 @@ def training_budget(manifest: dict) -> dict:
                datetime.fromisoformat(trained["fit_started"])).total_seconds() / 60
     max_steps = re.findall(r"--trainer\.max_steps[ =](\d+)", command)
     steps = [int(step) for curve in (manifest.get("validation") or {}).values() for step, _ in curve]
-    return {"max_time_minutes": budget, "max_steps": int(max_steps[-1]) if max_steps else None, "fit_minutes": fit,
-            "last_validation_step": max(steps) if steps else None,
-            "selected_step": (manifest.get("source") or {}).get("global_step")}
+    last_validation = int(max(steps)) if steps else None
+    optimizer_steps = trained.get("optimizer_steps", last_validation)
+    return {"optimizer_steps": optimizer_steps, "max_time_minutes": budget,
+            "max_steps": int(max_steps[-1]) if max_steps else None, "fit_minutes": fit,
+            "last_validation_step": last_validation, "selected_step": (manifest.get("source") or {}).get("global_step")}
 
 
 def budget_text(manifest: dict) -> str:
-    """A shipped simulator's training budget in words: "30 min" (wall clock), "9474 steps", or "-"."""
+    """A shipped simulator's training budget in words: the optimizer steps its fit ran, with the wall-clock
+    budget it was given when it had one ("28,111 steps (40 min budget)"), or "-" when the manifest tells neither."""
     budget = training_budget(manifest)
-    if budget["max_time_minutes"] is not None:
-        return f"{budget['max_time_minutes']:.0f} min"
-    return f"{budget['max_steps']} steps" if budget["max_steps"] is not None else "-"
+    steps = budget["optimizer_steps"]
+    minutes = budget["max_time_minutes"]
+    if steps is None:
+        return f"{minutes:.0f} min budget" if minutes is not None else "-"
+    return f"{steps:,} steps" + (f" ({minutes:.0f} min budget)" if minutes is not None else "")
 
 
 def checkpoint_path(name: str) -> Path:

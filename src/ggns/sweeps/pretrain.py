@@ -137,6 +137,8 @@ def package(name: str, spec: dict | None = None) -> Path:
     with SplitReader(data.path("train")) as train_split:
         generator_config, train_count = train_split.generator_config, len(train_split)
     info = checkpoint_info(source)
+    last = run.fit_dir / "checkpoints" / "last.ckpt"  # the fit's newest state: the optimizer steps it ran
+    fit_steps = max(int(checkpoint_info(last)["global_step"]) if last.is_file() else 0, int(info["global_step"]))
     scalars = read_scalars(run.fit_dir)
     walls = [wall for _, w, _ in scalars.values() for wall in w]
     manifest = {
@@ -144,7 +146,8 @@ def package(name: str, spec: dict | None = None) -> Path:
         "file": target.name, "sha256": sha256(target), "bytes": target.stat().st_size, "format": CHECKPOINT_FORMAT,
         "parameters": sum(p.numel() for p in model.parameters()),
         "trained_by": {"command": " ".join(train_command(name, spec)), "sweep": f"{entry['sweep']}: {entry['model']} seed 0",
-                       "commit": _git_commit(run.output), "fit_started": _utc(min(walls)) if walls else None,
+                       "commit": _git_commit(run.output), "optimizer_steps": fit_steps,
+                       "fit_started": _utc(min(walls)) if walls else None,
                        "fit_finished": _utc(max(walls)) if walls else None,
                        "machine": f"{os.cpu_count()} CPU cores (the packaging machine's count)"},
         "source": {"checkpoint": info["name"], "family": entry["family"], "selected_on": info["selected_on"],

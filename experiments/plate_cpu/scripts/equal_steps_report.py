@@ -1,0 +1,118 @@
+"""The learning curves of an equal-step sweep's runs, finished or still running, and the grounding ratio at
+equal steps: each run's validations read from its TensorBoard logs, and at every step where GGNS and a
+blind baseline both validated, the baseline's full rollout MSE over GGNS's k=1 (the grounding ratio):
+
+    python experiments/plate_cpu/scripts/equal_steps_report.py --sweep lightning_logs/sweeps/plate_equal_steps \
+        --output docs/results/plate_equal_steps [--ggns ggns] [--baselines mgn mgn_m] [--seed 0]
+
+Writes validations.csv (one row per run and validation step), ratios.csv (step, baseline, ratio), status.csv
+(per run: optimizer steps reached, training seconds, steps per training second, wall minutes from first to
+last event, whether the run's fit finished), report.md (the tables) and curves_steps.png. Runs partway
+through are reported as far as they went, and status.csv says so."""
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def read_runs(sweep: Path, models: list[str], seed: int) -> dict[str, dict]:
+    """{model: read_scalars of <sweep>/<model>/seed_<seed>} for the runs that have logged anything."""
+    from ggns.sweeps.curves import read_scalars
+
+    found = {}
+    for model in models:
+        directory = sweep / model / f"seed_{seed}"
+        if directory.is_dir() and any(directory.glob("events.out.tfevents.*")):
+            found[model] = read_scalars(directory)
+    return found
+
+
+def grounding_ratios(rows: list[dict], ggns: str, baselines: list[str]) -> list[dict]:
+    """At each step where `ggns` logged k=1 and a baseline its full rollout: baseline never / GGNS k=1."""
+    k1 = {r["step"]: r["rollout_mse_k1"] for r in rows if r["variant"] == ggns and r["rollout_mse_k1"] is not None}
+    out = []
+    for baseline in baselines:
+        never = {r["step"]: r["rollout_mse_never"] for r in rows
+                 if r["variant"] == baseline and r["rollout_mse_never"] is not None}
+        out += [{"step": s, "baseline": baseline, "ggns_k1": k1[s], "baseline_never": never[s],
+                 "ratio": never[s] / k1[s]} for s in sorted(set(k1) & set(never))]
+    return out
+
+
+def run_status(sweep: Path, model: str, seed: int, scalars: dict, max_steps: int | None) -> dict:
+    from ggns.sweeps.curves import training_seconds
+
+    steps = max(int(s.max()) for s, _, _ in scalars.values())
+    seconds, clocked = training_seconds(scalars, np.array([float(steps)]))
+    walls = [w for _, wall, _ in scalars.values() for w in wall]
+    tested = (sweep / model / f"seed_{seed}_test" / "test_metrics.json").is_file()  # the sweep's mark of a finished run
+    finished = tested or (max_steps is not None and steps >= max_steps)
+    return {"model": model, "optimizer_steps": steps, "train_seconds": round(float(seconds[0]), 1) if clocked else None,
+            "steps_per_train_second": round(steps / float(seconds[0]), 2) if clocked and seconds[0] > 0 else None,
+            "wall_minutes": round((max(walls) - min(walls)) / 60, 1), "budget_steps": max_steps,
+            "finished": bool(finished), "tested": tested}
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    with path.open("w", newline="") as f:
+        if rows:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+
+
+def main(argv: list[str] | None = None) -> Path:
+    from ggns.reports import markdown_table
+    from ggns.sweeps.curves import plot_curves, validation_markdown, validation_rows
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sweep", required=True, type=Path)
+    parser.add_argument("--output", required=True, type=Path)
+    parser.add_argument("--ggns", default="ggns")
+    parser.add_argument("--baselines", nargs="+", default=["mgn", "mgn_m"])
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--max-steps", type=int, default=None, help="the budget every run was given")
+    args = parser.parse_args(argv)
+    models = [args.ggns, *args.baselines]
+    runs = read_runs(args.sweep, models, args.seed)
+    if not runs:
+        sys.exit(f"no run of {models} with logs under {args.sweep}")
+    args.output.mkdir(parents=True, exist_ok=True)
+    rows = [row for model, scalars in runs.items() for row in validation_rows(model, scalars)]
+    ratios = grounding_ratios(rows, args.ggns, args.baselines)
+    status = [run_status(args.sweep, m, args.seed, s, args.max_steps) for m, s in runs.items()]
+    write_csv(args.output / "validations.csv", rows)
+    write_csv(args.output / "ratios.csv", ratios)
+    write_csv(args.output / "status.csv", status)
+    plot_curves(runs, args.output / "curves_steps.png", "steps", title="model")
+    ratio_lines = [[str(r["step"]), r["baseline"], f"{r['ggns_k1']:.3g}", f"{r['baseline_never']:.3g}", f"{r['ratio']:.2f}"]
+                   for r in ratios]
+    status_lines = [[s["model"], f"{s['optimizer_steps']:,}", "-" if s["budget_steps"] is None else f"{s['budget_steps']:,}",
+                     "-" if s["train_seconds"] is None else f"{s['train_seconds'] / 60:.1f}",
+                     "-" if s["steps_per_train_second"] is None else str(s["steps_per_train_second"]),
+                     f"{s['wall_minutes']:.1f}", "yes" if s["finished"] else "no (running or stopped)",
+                     "yes" if s["tested"] else "no"] for s in status]
+    text = "\n".join([
+        f"# Equal-step curves: {args.sweep.name}, seed {args.seed}", "",
+        f"`python experiments/plate_cpu/scripts/equal_steps_report.py --sweep {args.sweep} --output {args.output}"
+        + (f" --max-steps {args.max_steps}" if args.max_steps else "") + "`", "",
+        "## Runs", "",
+        markdown_table(["model", "optimizer steps reached", "budget", "training minutes", "steps per training second",
+                        "wall minutes (first to last event)", "fit finished", "tested"], status_lines), "",
+        "## The grounding ratio at equal steps", "",
+        "Each baseline's validation full-rollout MSE over GGNS's validation k=1 rollout MSE at the same optimizer step.", "",
+        markdown_table(["step", "baseline", "GGNS k=1", "baseline never", "ratio"], ratio_lines) if ratio_lines else "(none yet)",
+        "", "## Validations", "", validation_markdown(rows), "", "![curves](curves_steps.png)", ""])
+    report = args.output / "report.md"
+    report.write_text(text)
+    print(f"wrote {report}")
+    return report
+
+
+if __name__ == "__main__":
+    main()

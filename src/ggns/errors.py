@@ -15,3 +15,13 @@ class RolloutError(RuntimeError):
     def __init__(self, message: str, step: int | None = None):
         super().__init__(message)
         self.step = step
+
+
+class OnlineDivergence(RolloutError):
+    """An `OnlineSimulator` prediction that is not finite or left the scene: `object` names the object (its
+    name in the simulator), `step` the tick predicted from (tick -> tick + 1); the simulator's state is as
+    it was before the call."""
+
+    def __init__(self, message: str, step: int | None = None, object: object = None):
+        super().__init__(message, step)
+        self.object = object

@@ -19,6 +19,7 @@ import numpy as np
 from ..sensors.camera import DepthImage, back_project, collider_mesh, object_mesh, open3d_module
 
 CROP_SLAB = 1.0  # half thickness of the 2D slabs the crop measures distances to (points lie at z = 0, inside)
+DENSER = 2.0  # a cloud with more points than this times its occupied voxels is denser than the sensor's: thinned
 
 
 class _Surface:
@@ -142,6 +143,20 @@ class DepthProcessing:
             kept.append(points)
         points = np.concatenate([np.zeros((0, 3))] + kept)
         return self._downsample(points, dim, tick)
+
+    def thin(self, points: np.ndarray, dim: int, tick: int = 0) -> np.ndarray:
+        """A point cloud [P, dim] given as points, at the training data's density: down-sampled as `cloud` does
+        when it is denser than the sensor's (more than `DENSER` points per occupied voxel of the grid), else as
+        given (a cloud of the sensor's own density, e.g. a dataset's, is not changed)."""
+        points = np.asarray(points)
+        if len(points) < 2:
+            return points
+        corner = points.min(axis=0) - 0.5 * self.voxel_size
+        occupied = len(np.unique(np.floor((points - corner) / self.voxel_size).astype(np.int64), axis=0))
+        if len(points) <= DENSER * occupied:
+            return points
+        padded = np.concatenate([points, np.zeros((len(points), 3 - dim))], axis=1) if dim < 3 else points
+        return self._downsample(np.asarray(padded, dtype=np.float64), dim, tick)
 
     def _to_task(self, points: np.ndarray, dim: int) -> np.ndarray:
         """World points [P, 3] in the task space, [P, 3]; in 2D projected onto the plane z = 0."""

@@ -7,108 +7,64 @@ engine (`evaluation.rollout.rollout`) does, through the same graph builder and s
 (`online.engine`): fed a recorded trajectory's collider positions and, where a schedule says so, its
 point clouds, it returns the offline rollout's states. An observation stamped with an earlier tick s (a
 sensor's latency) corrects the state kept for s, and the simulator predicts forward from there to now
-with the inputs it had (`history` ticks are kept for that).
+with the inputs it had (`history` ticks are kept for that); observations of one tick are joined, whether
+they come in one call or in several.
+
+With a `Registration` (online.registration) the observations correct the state of their tick by
+registering the mesh to the cloud before the model predicts on (a blind model corrected, or a grounded one
+corrected as well); late observations go the same way (the kept tick is corrected, then predicted forward).
 
 Every input is checked before anything changes: bad input raises one ValueError naming the problem and
-leaves the state as it was; so does a step whose prediction is not finite (a `RolloutError`).
+leaves the state as it was; so does a step whose prediction is not finite or left the scene
+(`errors.OnlineDivergence`, naming the object).
 """
 from __future__ import annotations
 
-import dataclasses
+import hashlib
 from collections.abc import Hashable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
-from numpy.typing import ArrayLike
 from torch import Tensor
 
 from ..batch import TrajectoryBatch
-from ..data.observations import trajectory_from_arrays
-from ..evaluation.rollout import raise_divergence
-from ..sensors.camera import DepthImage, check_rigid
+from ..errors import OnlineDivergence
+from ..evaluation.rollout import ESCAPE_FACTOR
+from ..sensors.camera import RIGID_TOLERANCE, DepthImage, check_rigid
 from ..trajectory import Trajectory
 from .depth import DepthProcessing
 from .engine import advance, points_flags, tick_batch
+from .objects import Observation, float_array, grasped_nodes, rigid_motion
+from .registration import ObjectGeometry, Registration, register
 
-STATE_FORMAT = 1  # the layout of `OnlineSimulator.state_dict`
+STATE_FORMAT = 2  # the layout of `OnlineSimulator.state_dict` (2: with the model's identity)
 
 
-@dataclass(frozen=True, eq=False)
-class Observation:
-    """What was seen of one object at one tick: a point cloud, or depth images.
+@dataclass
+class _Seen:
+    """What was observed of one object at one tick, as given (joined with what comes later for that tick)."""
 
-    Attributes:
-        points: [P, d] points on the object's surface in the task space (used as they are, like a dataset's
-            point cloud: crop and down-sample them as the training data's sensor did), or None.
-        images: depth images of the tick (`sensors.camera.DepthImage`: depth, intrinsics, camera-to-world
-            pose, optional mask), turned into the cloud by the simulator's `DepthProcessing`; or ().
-        tick: the tick whose state it shows; None: the tick being stepped (the current one). An earlier tick
-            (a sensor's latency) corrects that tick's state and predicts forward again.
-    """
+    images: list = field(default_factory=list)  # DepthImage
+    points: list = field(default_factory=list)  # np.ndarray [P, d]
 
-    points: Any = None
-    images: Sequence[DepthImage] = ()
-    tick: int | None = None
-
-    def __post_init__(self) -> None:
-        images = (self.images,) if isinstance(self.images, DepthImage) else tuple(self.images)
-        if not all(isinstance(image, DepthImage) for image in images):
-            raise ValueError("observation images must be DepthImage objects (ggns.sensors.camera.DepthImage)")
-        object.__setattr__(self, "images", images)
-        if (self.points is None) == (not images):
-            raise ValueError("an observation holds either a point cloud (points) or depth images (images), "
-                             "not both and not neither")
-        if self.points is not None:
-            object.__setattr__(self, "points", _float_array(self.points, "observation points"))
-        if self.tick is not None and (isinstance(self.tick, bool) or not isinstance(self.tick, (int, np.integer))
-                                      or self.tick < 0):
-            raise ValueError(f"observation tick must be an integer >= 0 or None, got {self.tick!r}")
+    def joined(self, other: _Seen | None) -> _Seen:
+        return self if other is None else _Seen(other.images + self.images, other.points + self.points)
 
 
 @dataclass
 class _Tick:
     """What a past tick kept for a correction: state t (mesh positions [sumN, d], model state before step t),
-    the collider vertices at t [sumK, d] and the point clouds step t used (per object, None: none)."""
+    the collider vertices at t [sumK, d], the point clouds step t used (per object, None: none) and what was
+    observed at t (per object, None: nothing), so that a later observation of t joins it."""
 
     tick: int
     positions: Tensor
     model_state: Any
     collider: Tensor | None
     points: list[Tensor | None]
-
-
-def online_object(rest_positions: ArrayLike, cells: ArrayLike, fixed: ArrayLike,
-                  collider_vertices: ArrayLike | None = None, collider_faces: ArrayLike | None = None,
-                  poissons_ratio: float | None = None, initial_positions: ArrayLike | None = None,
-                  youngs_modulus: float = 1.0, fix_orientation: bool = False) -> Trajectory:
-    """An object for `OnlineSimulator` from plain arrays, checked as `data.observations.trajectory_from_arrays`
-    checks a user's trajectory (ValueError naming the problem): a `Trajectory` of two states, both the initial one.
-
-    Args:
-        rest_positions: [N, d] mesh nodes at rest (task space), cells [C, d+1], fixed: bool mask [N] or indices.
-        collider_vertices: [K, d] the collider's surface vertices at tick 0, the template its poses move
-            (None: no collider); collider_faces [F, d] its segments (2D) or triangles (3D).
-        poissons_ratio: for the models told the material (MGN(M), GGNS(M)); None: unknown.
-        initial_positions: [N, d] the mesh at tick 0 (None: at rest).
-        youngs_modulus: stored only (no model reads it).
-    """
-    rest = _float_array(rest_positions, "rest_positions")
-    dim = rest.shape[1] if rest.ndim == 2 else 2
-    if collider_vertices is None:
-        vertices, faces = np.zeros((0, dim)), np.zeros((0, dim), dtype=np.int64)
-    else:
-        vertices, faces = _float_array(collider_vertices, "collider_vertices"), collider_faces
-    trajectory = trajectory_from_arrays(rest, cells, fixed, faces, np.stack([vertices, vertices]), [None, None],
-                                        youngs_modulus, poissons_ratio, fix_orientation=fix_orientation)
-    if initial_positions is not None:
-        initial = _float_array(initial_positions, "initial_positions")
-        if initial.shape != rest.shape:
-            raise ValueError(f"initial_positions must be [N={len(rest)}, {dim}] like rest_positions, got "
-                             f"{list(initial.shape)}")
-        trajectory = dataclasses.replace(trajectory, positions=np.stack([initial, initial]))
-    return trajectory
+    seen: list[_Seen | None]
 
 
 class OnlineSimulator:
@@ -121,13 +77,20 @@ class OnlineSimulator:
             rest positions, cells, fixed mask, collider faces and material, its state 0 as tick 0 and its
             collider at state 0 as the template poses move), a sequence (named 0, 1, ...) or a mapping
             name -> object. All have the model's dimension; they step together in one batch.
-        depth: how depth images become point clouds (`DepthProcessing`); None: `DepthProcessing.for_model`
-            when the first depth image arrives (a shipped simulator's training sensor).
+        depth: how depth images (and point clouds denser than the training data's) become the cloud the model
+            sees (`DepthProcessing`); None: `DepthProcessing.for_model` (a shipped simulator's training sensor)
+            when it is first needed.
         history: past ticks kept for late observations (an observation of tick t - d, d <= history).
+        registration: correct each observed tick's state by registering the mesh to its cloud (`Registration`);
+            None: the clouds only reach the model (a GGNS's grounding).
+        rigid_tolerance: how far a collider pose's rotation may be from orthonormal (`check_rigid`).
+        warm: import and exercise the depth path and make one prediction now (`warm_up`), so the first frame
+            of a control loop costs what the others do.
     """
 
     def __init__(self, model: Any, objects: Trajectory | Sequence[Trajectory] | Mapping[Hashable, Trajectory],
-                 depth: DepthProcessing | None = None, history: int = 8):
+                 depth: DepthProcessing | None = None, history: int = 8, registration: Registration | None = None,
+                 rigid_tolerance: float = RIGID_TOLERANCE, warm: bool = True):
         if isinstance(objects, Trajectory):
             objects = [objects]
         named = dict(objects) if isinstance(objects, Mapping) else dict(enumerate(objects))
@@ -136,11 +99,14 @@ class OnlineSimulator:
                              "Trajectory (ggns.online.online_object builds one from arrays)")
         if isinstance(history, bool) or not isinstance(history, int) or history < 0:
             raise ValueError(f"history must be an integer >= 0, got {history!r}")
+        if registration is not None and not isinstance(registration, Registration):
+            raise ValueError(f"registration must be a ggns.online.Registration or None, got {type(registration).__name__}")
         dim = int(model.hparams.dim)
         other = [f"{name!r} ({o.dim}D)" for name, o in named.items() if o.dim != dim]
         if other:
             raise ValueError(f"the model simulates {dim}D objects; not object(s) {', '.join(other)}")
         self.model, self.dim, self.history = model, dim, history
+        self.registration, self.rigid_tolerance = registration, float(rigid_tolerance)
         self.names: list[Hashable] = list(named)
         self._index = {name: b for b, name in enumerate(self.names)}
         self.depth = depth
@@ -148,11 +114,9 @@ class OnlineSimulator:
         self._step_fn = model.step if getattr(model, "static_rollouts", False) else model.rollout_step()
         parameter = next(model.parameters())
         self.device, self.dtype = parameter.device, parameter.dtype
+        self.identity = model_identity(model)
         objects = list(named.values())
-        two_states = [dataclasses.replace(
-            o, positions=np.stack([o.positions[0]] * 2), collider_positions=np.stack([o.collider_positions[0]] * 2),
-            points=np.zeros((0, dim), dtype=np.float32), point_offsets=np.zeros(3, dtype=np.int64), diagnostics={})
-            for o in objects]
+        two_states = [dataclasses_replace_two_states(o, dim) for o in objects]
         static = TrajectoryBatch.from_trajectories(two_states, dtype=self.dtype)  # checked here, on the host
         if model.with_material:
             static.require_material(f"{type(model).__name__}")
@@ -161,13 +125,40 @@ class OnlineSimulator:
         self._faces = [np.asarray(o.collider_faces) for o in objects]
         self._templates = [np.asarray(o.collider_positions[0], dtype=np.float64) for o in objects]
         self._fixed_index = [np.flatnonzero(o.fixed) for o in objects]
+        self._grasped = [grasped_nodes(o) for o in objects]
+        self._grasped_start = [np.asarray(o.positions[0][g], dtype=np.float64) for o, g in zip(objects, self._grasped)]
         self._nodes = self._static.node_offsets
         self._vertices = self._static.collider_range
         self._origin = self._static.positions[0].clone()
         self._extent = float((self._origin.amax(0) - self._origin.amin(0)).norm())
+        self._geometry = None if registration is None else [
+            ObjectGeometry(c, dim, np.asarray(o.fixed, dtype=bool), self.device) for c, o in zip(self._cells, objects)]
         self._tick, self._positions, self._model_state = 0, self._origin.clone(), None
         self._collider = None if self._static.collider is None else self._static.collider[0].clone()
+        self._pose = [np.eye(dim + 1) for _ in objects]  # each collider's rigid motion from its template, now
         self._past: list[_Tick] = []
+        if warm:
+            self.warm_up()
+
+    def warm_up(self) -> None:
+        """Pay the first call's costs now, not at the first frame: import Open3D and run the depth path on a tiny
+        cloud (when the model's depth processing is known or given), and make one prediction from the current
+        state (discarded: the state is unchanged)."""
+        depth = self._depth_or_none()
+        if depth is not None:
+            from ..sensors.camera import open3d_module
+
+            try:
+                open3d_module()
+            except ImportError:
+                pass  # no depth images then; point clouds still work (thinned without Open3D: see thin)
+            else:
+                grid = np.stack(np.meshgrid(*[np.arange(3.0)] * 3), -1).reshape(-1, 3) * depth.voxel_size
+                depth._downsample(grid, self.dim, 0)
+        batch = tick_batch(self._static, self._positions, self._positions, self._collider, self._collider,
+                           [None] * len(self.names))
+        advance(self._step_fn, batch, self._positions, False, self.model.connectivity, self.model.with_material,
+                self._model_state)
 
     # ---- the state ---------------------------------------------------------------------------------------
     @property
@@ -196,22 +187,30 @@ class OnlineSimulator:
         return dict(zip(self.names, estimate(state).tolist()))
 
     def state_dict(self) -> dict[str, Any]:
-        """Everything a restored simulator continues from (copies): the tick, the mesh positions [sumN, d],
-        the collider vertices [sumK, d] (or None), the model state (an LSTM's (h, c), GGNSID's fused
-        estimate; None before the first step) and the kept past ticks. Plain tensors, lists and ints:
-        `torch.save` writes it."""
-        return {"format": STATE_FORMAT, "names": list(self.names), "tick": self._tick,
+        """Everything a restored simulator continues from (copies): the model's identity (its class and the
+        sha256 of its weights: a state is refused by a simulator of another model), the tick, the mesh
+        positions [sumN, d], the collider vertices [sumK, d] (or None), the model state (an LSTM's (h, c),
+        GGNSID's fused estimate; None before the first step) and the kept past ticks. Plain tensors, lists,
+        strings and ints: `torch.save` writes it. (What was observed is not kept: an observation of a tick
+        restored from a state replaces its cloud instead of joining it.)"""
+        return {"format": STATE_FORMAT, "model": dict(self.identity), "names": list(self.names), "tick": self._tick,
                 "positions": self._positions.clone(), "collider": _clone(self._collider),
+                "poses": [torch.as_tensor(p) for p in self._pose],
                 "model_state": _clone(self._model_state),
                 "history": [{"tick": p.tick, "positions": p.positions.clone(), "model_state": _clone(p.model_state),
                              "collider": _clone(p.collider), "points": [_clone(c) for c in p.points]}
                             for p in self._past]}
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Continue from a `state_dict` of a simulator of the same objects (ValueError naming what does not fit;
-        the state is unchanged then)."""
+        """Continue from a `state_dict` of a simulator of the same model and objects (ValueError naming what does
+        not fit; the state is unchanged then)."""
         if not isinstance(state, Mapping) or state.get("format") != STATE_FORMAT:
             raise ValueError(f"not an OnlineSimulator state of format {STATE_FORMAT}")
+        if state.get("model") != self.identity:
+            made = state.get("model") or {}
+            raise ValueError(f"the state was made by a {made.get('class')} (weights sha256 "
+                             f"{str(made.get('weights_sha256'))[:12]}...), this simulator runs a {self.identity['class']} "
+                             f"({self.identity['weights_sha256'][:12]}...): another model's state is not this one's")
         if list(state.get("names", [])) != self.names:
             raise ValueError(f"the state is of objects {state.get('names')}, this simulator's are {self.names}")
         tick = state.get("tick")
@@ -226,15 +225,22 @@ class OnlineSimulator:
         for p in past:
             self._check_model_state(p["model_state"], f"model state of tick {p['tick']}")
         collider = self._checked_collider(state.get("collider"))
+        poses = state.get("poses")
+        if not isinstance(poses, (list, tuple)) or len(poses) != len(self.names) or not all(
+                isinstance(q, Tensor) and tuple(q.shape) == (self.dim + 1, self.dim + 1) and torch.isfinite(q).all()
+                for q in poses):
+            raise ValueError(f"the state's collider poses must be {len(self.names)} finite [{self.dim + 1}, "
+                             f"{self.dim + 1}] tensors")
         kept = [_Tick(p["tick"],
                       self._checked_tensor(p["positions"], self._origin.shape, f"positions of tick {p['tick']}"),
                       _to(p["model_state"], self.device), self._checked_collider(p["collider"]),
                       [None if c is None else self._checked_tensor(c, (None, self.dim), f"points of tick {p['tick']}")
-                       for c in p["points"]])
+                       for c in p["points"]], [None] * len(self.names))
                 for p in past]
         if any(len(p.points) != len(self.names) for p in kept):
             raise ValueError(f"the state's past ticks need one point cloud entry per object ({len(self.names)})")
         self._tick, self._positions, self._collider = tick, positions, collider
+        self._pose = [q.double().cpu().numpy() for q in poses]
         self._model_state, self._past = _to(state.get("model_state"), self.device), kept
 
     # ---- a tick ----------------------------------------------------------------------------------------------
@@ -244,13 +250,15 @@ class OnlineSimulator:
         Args:
             collider: the collider's pose at t + 1: its vertices [K, d], or a rigid transform [d+1, d+1] of its
                 template (the object's collider at tick 0); for several objects a mapping name -> pose. None (or
-                an object left out): the collider stays where it is.
+                an object left out): the collider stays where it is. The nodes it grasps (`online_object`'s
+                `grasped`; a recorded trajectory's fixed nodes that move) move with it as a rigid body.
             observation: what was seen of state t (or of an earlier tick, `Observation.tick`): an `Observation`,
-                a point cloud [P, d], a `DepthImage` or a list of them; for several objects a mapping
-                name -> observation, or depth images (unmasked, cropped around each object) for all of them.
-                None: nothing was seen (the model predicts without a point cloud).
+                a point cloud [P, d], a `DepthImage`, a list of depth images, or a list of `Observation`s (of one
+                tick or several, in any order); for several objects a mapping name -> any of these, or depth
+                images (unmasked, cropped around each object) for all of them. None: nothing was seen (the model
+                predicts without a point cloud). What is seen of one tick is joined, within a call and across calls.
             fixed: the fixed nodes' positions at t + 1, [F_b, d] in node order (a mapping for several
-                objects); None: they stay where they are.
+                objects); None: they stay where they are, but for the grasped ones, which follow the collider.
 
         Returns:
             the mesh of every object at t + 1, name -> [N_b, d].
@@ -259,47 +267,92 @@ class OnlineSimulator:
             ValueError: bad input (shapes, non-finite values, a transform that is not rigid, an unknown
                 object, an observation of a future tick or of one older than the kept history); nothing
                 changed.
-            RolloutError: the prediction is not finite or left the scene; nothing changed.
+            OnlineDivergence: the prediction is not finite or left the scene (a `RolloutError` naming the
+                object); nothing changed.
         """
-        collider_next = self._parse_colliders(collider)
-        fixed_next = self._parse_fixed(fixed)
-        clouds = self._parse_observations(observation)  # {object: (tick, cloud)}
+        collider_next, poses = self._parse_colliders(collider)
+        fixed_next = self._parse_fixed(fixed, poses)
+        seen = self._parse_observations(observation)  # {(object, tick): _Seen}
+        clouds = self._clouds(seen)  # {(object, tick): cloud [P, d]}
         past = list(self._past)
         positions, model_state = self._positions, self._model_state
-        late = [tick for tick, _ in clouds.values() if tick < self._tick]
+        late = [tick for _, tick in clouds if tick < self._tick]
         if late:  # correct the kept tick and predict forward to now with the inputs each tick had
             first = min(late) - past[0].tick
             kept = past[:first]
             positions, model_state = past[first].positions, past[first].model_state
             for i in range(first, len(past)):
                 then = past[i]
-                points = [clouds[b][1] if b in clouds and clouds[b][0] == then.tick else then.points[b]
-                          for b in range(len(self.names))]
+                points = [clouds.get((b, then.tick), then.points[b]) for b in range(len(self.names))]
+                observed = [then.seen[b] if (b, then.tick) not in seen else seen[(b, then.tick)].joined(then.seen[b])
+                            for b in range(len(self.names))]
                 following = past[i + 1] if i + 1 < len(past) else None
                 nxt, next_state = self._advance(
                     positions, following.positions if following else self._positions, then.collider,
                     following.collider if following else self._collider, points, model_state, then.tick)
-                kept.append(_Tick(then.tick, positions, model_state, then.collider, points))
+                kept.append(_Tick(then.tick, positions, model_state, then.collider, points, observed))
                 positions, model_state = nxt, next_state
             past = kept
-        points = [clouds[b][1] if b in clouds and clouds[b][0] == self._tick else None for b in range(len(self.names))]
+        points = [clouds.get((b, self._tick)) for b in range(len(self.names))]
+        observed = [seen.get((b, self._tick)) for b in range(len(self.names))]
         nxt, next_state = self._advance(positions, fixed_next, self._collider, collider_next, points, model_state,
                                         self._tick)
-        past.append(_Tick(self._tick, positions, model_state, self._collider, points))
+        past.append(_Tick(self._tick, positions, model_state, self._collider, points, observed))
         # nothing failed: commit
         self._past = past[max(0, len(past) - self.history):] if self.history else []
         self._positions, self._model_state, self._collider = nxt, next_state, collider_next
+        self._pose = poses
         self._tick += 1
         return self.positions()
 
     def _advance(self, positions: Tensor, fixed_next: Tensor, collider: Tensor | None, collider_next: Tensor | None,
                  points: list[Tensor | None], model_state: Any, tick: int) -> tuple[Tensor, Any]:
-        """One prediction (`engine.advance`) checked for divergence (RolloutError naming the tick)."""
+        """One prediction (`engine.advance`) from `positions`, registered first to the tick's clouds when the
+        simulator registers, checked for divergence (OnlineDivergence naming the object and tick)."""
+        if self.registration is not None and any(c is not None for c in points):
+            positions = self._registered(positions, points)
+            if not self.registration.feed_model:
+                points = [None] * len(points)
         batch = tick_batch(self._static, positions, fixed_next, collider, collider_next, points)
-        nxt, model_state = advance(self._step_fn, batch, positions, points_flags(points), self.model.connectivity,
-                                   self.model.with_material, model_state)
-        raise_divergence(nxt, self._origin, self._extent, self._static, tick)
+        try:
+            nxt, model_state = advance(self._step_fn, batch, positions, points_flags(points), self.model.connectivity,
+                                       self.model.with_material, model_state)
+        except ValueError as error:
+            if "max_num_neighbors" not in str(error):
+                raise
+            sizes = {self.names[b]: len(c) for b, c in enumerate(points) if c is not None}
+            raise ValueError(f"tick {tick}: a point cloud is denser than the model's graph allows (points per object: "
+                             f"{sizes}): give OnlineSimulator a DepthProcessing whose voxel_size is the training "
+                             f"sensor's, so clouds are down-sampled to its density ({error})") from None
+        self._check_divergence(nxt, tick)
         return nxt, model_state
+
+    def _registered(self, positions: Tensor, points: list[Tensor | None]) -> Tensor:
+        """`positions` [sumN, d] with each observed object's mesh registered to its cloud."""
+        out = positions.clone()
+        for b, cloud in enumerate(points):
+            if cloud is not None:
+                rows = slice(self._nodes[b], self._nodes[b + 1])
+                out[rows] = register(self.registration, self._geometry[b], positions[rows], cloud)
+        return out
+
+    def _check_divergence(self, prediction: Tensor, tick: int) -> None:
+        """OnlineDivergence when the prediction of tick + 1 [sumN, d] is not finite or has a node farther than
+        ESCAPE_FACTOR x the objects' extent from its start, naming the first such object and node."""
+        finite = torch.isfinite(prediction).all(dim=1)
+        far = (prediction - self._origin).norm(dim=1) > ESCAPE_FACTOR * self._extent
+        bad = ~finite | far
+        if not bool(bad.any()):
+            return
+        first = int(torch.nonzero(bad)[0])
+        b = int(np.searchsorted(np.asarray(self._nodes), first, side="right")) - 1
+        name, node = self.names[b], first - self._nodes[b]
+        what = "is not finite" if not bool(finite[first]) else \
+            f"is {float((prediction[first] - self._origin[first]).norm()):.4g} from its start, more than " \
+            f"{ESCAPE_FACTOR:g} x the objects' extent ({self._extent:.4g})"
+        raise OnlineDivergence(f"object {name!r} diverged predicting tick {tick + 1} from tick {tick}: its mesh node "
+                               f"{node} {what}; {int(bad.sum())} node(s) so; the simulator's state is unchanged",
+                               step=tick, object=name)
 
     # ---- input checks (nothing is changed here) ------------------------------------------------------------------
     def _per_object(self, value: Any, what: str, shared: bool = False) -> dict[int, Any]:
@@ -319,41 +372,49 @@ class OnlineSimulator:
         raise ValueError(f"{len(self.names)} objects step together: give the {what} as a mapping name -> value "
                          f"(the objects are {self.names})")
 
-    def _parse_colliders(self, collider: Any) -> Tensor | None:
-        """The collider vertices [sumK, d] at t + 1 from the poses given (others kept)."""
+    def _parse_colliders(self, collider: Any) -> tuple[Tensor | None, list[np.ndarray]]:
+        """(the collider vertices [sumK, d] at t + 1 from the poses given, others kept; each collider's rigid
+        motion from its template at t + 1)."""
         poses = self._per_object(collider, "collider pose")
+        motions = list(self._pose)
         if self._collider is None:
             if poses:
                 raise ValueError("collider pose given, but the object(s) have no collider")
-            return None
+            return None, motions
         parts = [self._collider_of(self._collider, b) for b in range(len(self.names))]
         for b, pose in poses.items():
             name, template = self.names[b], self._templates[b]
             if len(template) == 0:
                 raise ValueError(f"collider pose given for object {name!r}, which has no collider")
-            pose = _float_array(pose, f"collider pose of object {name!r}", finite=False)
+            pose = float_array(pose, f"collider pose of object {name!r}", finite=False)
             if pose.shape == template.shape:
                 if not np.isfinite(pose).all():
                     raise ValueError(f"collider positions of object {name!r} are not finite")
                 vertices = pose
+                motions[b] = rigid_motion(template, pose) if len(self._grasped[b]) else motions[b]
             elif pose.shape == (self.dim + 1, self.dim + 1):
-                transform = check_rigid(pose, self.dim, f"collider pose of object {name!r}")
+                transform = check_rigid(pose, self.dim, f"collider pose of object {name!r}", self.rigid_tolerance)
                 vertices = template @ transform[:self.dim, :self.dim].T + transform[:self.dim, self.dim]
+                motions[b] = transform
             else:
                 raise ValueError(f"collider pose of object {name!r} must be its vertices {list(template.shape)} or a "
                                  f"rigid transform [{self.dim + 1}, {self.dim + 1}], got shape {list(pose.shape)}")
             parts[b] = torch.as_tensor(vertices).to(self.device, self.dtype)
-        return torch.cat(parts)
+        return torch.cat(parts), motions
 
-    def _parse_fixed(self, fixed: Any) -> Tensor:
-        """[sumN, d] whose fixed rows are the fixed nodes at t + 1 (the current positions where not given)."""
+    def _parse_fixed(self, fixed: Any, motions: list[np.ndarray]) -> Tensor:
+        """[sumN, d] whose fixed rows are the fixed nodes at t + 1: as given, else the grasped ones moved with their
+        collider (`motions`) and the others where they are."""
         given = self._per_object(fixed, "fixed node positions")
-        if not given:
-            return self._positions
         out = self._positions.clone()
+        for b, grasped in enumerate(self._grasped):
+            if b not in given and len(grasped) and motions[b] is not self._pose[b]:
+                moved = self._grasped_start[b] @ motions[b][:self.dim, :self.dim].T + motions[b][:self.dim, self.dim]
+                out[self._nodes[b] + torch.as_tensor(grasped, device=self.device)] = \
+                    torch.as_tensor(moved).to(self.device, self.dtype)
         for b, value in given.items():
             index = self._fixed_index[b]
-            value = _float_array(value, f"fixed node positions of object {self.names[b]!r}")
+            value = float_array(value, f"fixed node positions of object {self.names[b]!r}")
             if value.shape != (len(index), self.dim):
                 raise ValueError(f"fixed node positions of object {self.names[b]!r} must be [{len(index)}, {self.dim}] "
                                  f"(its fixed nodes in node order), got {list(value.shape)}")
@@ -361,45 +422,77 @@ class OnlineSimulator:
                 torch.as_tensor(value).to(self.device, self.dtype)
         return out
 
-    def _parse_observations(self, observation: Any) -> dict[int, tuple[int, Tensor]]:
-        """{object index: (tick, point cloud [P, d] on the device)}: checked, depth images processed."""
-        shared = isinstance(observation, DepthImage) or (
-            isinstance(observation, Sequence) and len(observation) > 0
-            and all(isinstance(o, DepthImage) for o in observation)) or (
-            isinstance(observation, Observation) and observation.points is None)
+    def _parse_observations(self, observation: Any) -> dict[tuple[int, int], _Seen]:
+        """{(object index, tick): what was seen}: every observation checked, those of one object and tick joined."""
+        shared = _is_images(observation) or (isinstance(observation, Observation) and observation.points is None) or (
+            _is_observations(observation) and all(o.points is None for o in observation))
         given = self._per_object(observation, "observation", shared=shared)
-        if shared and len(self.names) > 1 and any(
-                image.mask is not None for image in _images_of(observation)):
+        if shared and len(self.names) > 1 and any(image.mask is not None for image in _images_of(observation)):
             raise ValueError(f"depth images with a mask show one object: give them as a mapping name -> images (the "
                              f"objects are {self.names}); images without a mask are cropped around each object")
-        clouds = {}
+        seen: dict[tuple[int, int], _Seen] = {}
         for b, value in given.items():
             name = self.names[b]
-            observed = value if isinstance(value, Observation) else (
-                Observation(images=value) if isinstance(value, DepthImage) or (
-                    isinstance(value, Sequence) and value and all(isinstance(v, DepthImage) for v in value))
-                else Observation(points=value))
-            tick = self._tick if observed.tick is None else int(observed.tick)
-            if tick > self._tick:
-                raise ValueError(f"observation of object {name!r} is stamped tick {tick}, in the future (the current "
-                                 f"tick is {self._tick})")
-            if tick < self._tick - len(self._past):
-                raise ValueError(f"observation of object {name!r} is stamped tick {tick}, older than the kept history "
-                                 f"(ticks {self._tick - len(self._past)}..{self._tick}; history={self.history})")
-            if observed.points is not None:
-                points = observed.points
-                if points.ndim != 2 or points.shape[1] != self.dim:
-                    raise ValueError(f"observation points of object {name!r} must be [P, {self.dim}], got "
-                                     f"{list(points.shape)}")
+            if _is_observations(value):
+                observed = list(value)
+            elif isinstance(value, Observation):
+                observed = [value]
+            elif _is_images(value):
+                observed = [Observation(images=value)]
+            elif isinstance(value, Sequence) and not isinstance(value, (str, bytes)) and value and not _is_numeric(value):
+                kinds = sorted({type(v).__name__ for v in value})
+                raise ValueError(f"observation of object {name!r}: a list must hold Observations or DepthImages "
+                                 f"(of one kind), or be a point cloud [P, {self.dim}]; got a list of {', '.join(kinds)}")
             else:
-                points = self._depth_cloud(b, observed.images, tick)
-            clouds[b] = (tick, torch.as_tensor(points).to(self.device, self.dtype))
+                observed = [Observation(points=value)]
+            for one in observed:
+                tick = self._tick if one.tick is None else int(one.tick)
+                if tick > self._tick:
+                    raise ValueError(f"observation of object {name!r} is stamped tick {tick}, in the future (the "
+                                     f"current tick is {self._tick})")
+                if tick < self._tick - len(self._past):
+                    raise ValueError(f"observation of object {name!r} is stamped tick {tick}, older than the kept "
+                                     f"history (ticks {self._tick - len(self._past)}..{self._tick}; "
+                                     f"history={self.history})")
+                if one.points is not None and (one.points.ndim != 2 or one.points.shape[1] != self.dim):
+                    raise ValueError(f"observation points of object {name!r} must be [P, {self.dim}], got "
+                                     f"{list(one.points.shape)}")
+                entry = seen.setdefault((b, tick), _Seen())
+                entry.images.extend(one.images)
+                if one.points is not None:
+                    entry.points.append(one.points)
+        return seen
+
+    def _clouds(self, seen: dict[tuple[int, int], _Seen]) -> dict[tuple[int, int], Tensor]:
+        """The point cloud of each (object, tick) seen, joined with what was seen of that tick before."""
+        clouds = {}
+        for (b, tick), now in seen.items():
+            before = self._past[tick - self._tick].seen[b] if tick < self._tick else None
+            both = now.joined(before)
+            parts = []
+            if both.images:
+                parts.append(self._depth_cloud(b, both.images, tick))
+            if both.points:
+                points = np.concatenate(both.points).astype(np.float32)
+                depth = self._depth_or_none()
+                parts.append(points if depth is None else depth.thin(points, self.dim, tick))
+            cloud = np.concatenate(parts) if len(parts) > 1 else parts[0]
+            clouds[(b, tick)] = torch.as_tensor(cloud).to(self.device, self.dtype)
         return clouds
+
+    def _depth_or_none(self) -> DepthProcessing | None:
+        """The depth processing given or that of the model's training sensor; None when neither is known."""
+        if self.depth is None:
+            try:
+                self.depth = DepthProcessing.for_model(self.model)
+            except ValueError:
+                return None
+        return self.depth
 
     def _depth_cloud(self, b: int, images: Sequence[DepthImage], tick: int) -> np.ndarray:
         """Object b's point cloud from depth images of `tick`, cropped around its state kept for that tick."""
-        if self.depth is None:
-            self.depth = DepthProcessing.for_model(self.model)
+        if self._depth_or_none() is None:
+            DepthProcessing.for_model(self.model)  # raises the ValueError that says what to give
         then = self._past[tick - self._tick] if tick < self._tick else None
         positions = (then.positions if then else self._positions)[self._nodes[b]:self._nodes[b + 1]]
         collider = self._collider_of(then.collider if then else self._collider, b)
@@ -437,26 +530,55 @@ class OnlineSimulator:
         return self._checked_tensor(value, tuple(self._collider.shape), "collider positions")
 
 
+
+def model_identity(model: Any) -> dict[str, str]:
+    """A model's class and the sha256 of its weights and buffers (names, shapes, values): what a saved online state
+    belongs to."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(model.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(str(tuple(tensor.shape)).encode())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return {"class": type(model).__name__, "weights_sha256": digest.hexdigest()}
+
+
+def dataclasses_replace_two_states(trajectory: Trajectory, dim: int) -> Trajectory:
+    """The static parts of an object as a trajectory of two states, both its state 0, without point clouds."""
+    import dataclasses
+
+    o = trajectory
+    return dataclasses.replace(
+        o, positions=np.stack([o.positions[0]] * 2), collider_positions=np.stack([o.collider_positions[0]] * 2),
+        points=np.zeros((0, dim), dtype=np.float32), point_offsets=np.zeros(3, dtype=np.int64), diagnostics={})
+
+
+def _is_images(value: Any) -> bool:
+    return isinstance(value, DepthImage) or (isinstance(value, Sequence) and len(value) > 0
+                                             and all(isinstance(v, DepthImage) for v in value))
+
+
+def _is_observations(value: Any) -> bool:
+    return isinstance(value, Sequence) and len(value) > 0 and all(isinstance(v, Observation) for v in value)
+
+
+def _is_numeric(value: Sequence) -> bool:
+    """Whether a list is an array of numbers (a point cloud given as nested lists)."""
+    try:
+        np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
 def _images_of(observation: Any) -> tuple[DepthImage, ...]:
-    """The depth images of a bare observation (a DepthImage, a list of them, an `Observation`)."""
+    """The depth images of a bare observation (a DepthImage, a list of them, an `Observation` or a list of them)."""
     if isinstance(observation, DepthImage):
         return (observation,)
     if isinstance(observation, Observation):
         return tuple(observation.images)
+    if _is_observations(observation):
+        return tuple(image for o in observation for image in o.images)
     return tuple(observation)
-
-
-def _float_array(value: Any, what: str, finite: bool = True) -> np.ndarray:
-    """float64 array of a numeric array or tensor; ValueError naming `what` otherwise (or when not finite)."""
-    if isinstance(value, Tensor):
-        value = value.detach().cpu().numpy()
-    try:
-        array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what} must be an array of numbers, got {type(value).__name__}") from None
-    if finite and not np.isfinite(array).all():
-        raise ValueError(f"{what}: NaN or inf values")
-    return array
 
 
 def _clone(value: Any) -> Any:

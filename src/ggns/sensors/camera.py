@@ -47,10 +47,14 @@ def _vec3(name: str, value) -> tuple[float, float, float]:
     return vec
 
 
-def check_rigid(matrix, dim: int, what: str, tolerance: float = 1e-5) -> np.ndarray:
+RIGID_TOLERANCE = 1e-4  # the largest |R^T R - I| entry accepted as rounding (a pose written to 5 decimals has ~1e-5)
+
+
+def check_rigid(matrix, dim: int, what: str, tolerance: float = RIGID_TOLERANCE) -> np.ndarray:
     """A homogeneous rigid transform [dim+1, dim+1] (float64) checked: finite, last row (0, ..., 0, 1),
-    its rotation block orthonormal with determinant +1 (to `tolerance`); ValueError naming `what` and
-    the first failed check otherwise."""
+    its rotation block orthonormal with determinant +1 to `tolerance` (the largest entry of R^T R - I);
+    returned with the rotation block replaced by the nearest rotation (so that rounding does not scale or
+    shear what it maps). ValueError naming `what`, the failed check and its residual otherwise."""
     m = np.asarray(matrix, dtype=np.float64)
     if m.shape != (dim + 1, dim + 1):
         raise ValueError(f"{what} must be a [{dim + 1}, {dim + 1}] homogeneous transform, got shape {list(m.shape)}")
@@ -59,10 +63,19 @@ def check_rigid(matrix, dim: int, what: str, tolerance: float = 1e-5) -> np.ndar
     if np.abs(m[dim] - np.eye(dim + 1)[dim]).max() > tolerance:
         raise ValueError(f"{what}: its last row must be (0, ..., 0, 1), got {m[dim].tolist()}")
     rotation = m[:dim, :dim]
-    if np.abs(rotation.T @ rotation - np.eye(dim)).max() > tolerance or np.linalg.det(rotation) < 0:
-        raise ValueError(f"{what} is not a rigid transform: its rotation block is not orthonormal with "
-                         f"determinant +1 (scale, shear or reflection)")
-    return m
+    residual = float(np.abs(rotation.T @ rotation - np.eye(dim)).max())
+    if residual > tolerance or np.linalg.det(rotation) < 0:
+        kind = "a reflection (determinant < 0)" if np.linalg.det(rotation) < 0 else \
+            f"|R^T R - I| reaches {residual:.2g} > tolerance {tolerance:.2g} (scale or shear; a rounded pose passes " \
+            f"with a larger tolerance)"
+        raise ValueError(f"{what} is not a rigid transform: its rotation block R is {kind}")
+    if residual <= 1e-12 and (m[dim] == np.eye(dim + 1)[dim]).all():
+        return m  # rigid to the last bits: as given
+    u, _, vt = np.linalg.svd(rotation)
+    out = m.copy()
+    out[:dim, :dim] = u @ vt
+    out[dim] = np.eye(dim + 1)[dim]
+    return out
 
 
 def rotation_xyz(degrees) -> np.ndarray:
@@ -152,19 +165,32 @@ class DepthImage:
         camera_to_world: [4, 4] the camera's pose, camera coordinates (x along columns, y along rows,
             z forward) to world coordinates.
         mask: [H, W] bool, the pixels of the object (a segmentation), or None (all pixels).
+        depth_scale: scene units per depth unit, e.g. 0.001 for a camera's millimetres (a RealSense's or a
+            Kinect's uint16 images) to metres; required for an integer image, None: the depth is in scene units.
+        rigid_tolerance: how far camera_to_world's rotation may be from orthonormal (`check_rigid`).
     """
 
     depth: np.ndarray
     intrinsics: tuple[float, float, float, float]
     camera_to_world: np.ndarray
     mask: np.ndarray | None = None
+    depth_scale: float | None = None
+    rigid_tolerance: float = RIGID_TOLERANCE
 
     def __post_init__(self) -> None:
         depth = np.asarray(self.depth)
-        if depth.ndim != 2 or depth.size == 0 or not np.issubdtype(depth.dtype, np.number):
+        if depth.ndim != 2 or depth.size == 0 or not np.issubdtype(depth.dtype, np.number) or depth.dtype == np.bool_:
             raise ValueError(f"depth image must be a non-empty numeric [H, W] array, got {depth.dtype} "
                              f"{list(depth.shape)}")
+        if self.depth_scale is not None and not (np.isfinite(self.depth_scale) and float(self.depth_scale) > 0):
+            raise ValueError(f"depth_scale must be a finite number > 0 (scene units per depth unit), got "
+                             f"{self.depth_scale!r}")
+        if np.issubdtype(depth.dtype, np.integer) and self.depth_scale is None:
+            raise ValueError(f"depth image is {depth.dtype} (integer depth units, e.g. a depth camera's millimetres): "
+                             f"give depth_scale, the scene units per unit (0.001 for millimetres to metres)")
         depth = depth.astype(np.float64 if depth.dtype == np.float64 else np.float32)
+        if self.depth_scale is not None:
+            depth = depth * np.float32(self.depth_scale) if depth.dtype == np.float32 else depth * float(self.depth_scale)
         if np.isinf(depth).any() or (depth < 0).any():
             raise ValueError("depth image has negative or infinite values (0 or NaN mark a missing pixel)")
         object.__setattr__(self, "depth", depth)
@@ -173,7 +199,8 @@ class DepthImage:
             raise ValueError(f"intrinsics must be 4 finite numbers (fx, fy, cx, cy) with fx, fy > 0, got "
                              f"{self.intrinsics!r}")
         object.__setattr__(self, "intrinsics", intrinsics)
-        object.__setattr__(self, "camera_to_world", check_rigid(self.camera_to_world, 3, "camera_to_world"))
+        object.__setattr__(self, "camera_to_world",
+                           check_rigid(self.camera_to_world, 3, "camera_to_world", float(self.rigid_tolerance)))
         if self.mask is not None:
             mask = np.asarray(self.mask)
             if mask.shape != depth.shape or mask.dtype != np.bool_:

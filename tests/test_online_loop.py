@@ -336,3 +336,24 @@ def test_a_grounded_simulator_can_be_registered_as_well(trajs):
     assert (states["both"] - states["registered"]).abs().max() > 1e-6
     batch = TrajectoryBatch.from_trajectories([tr])
     torch.testing.assert_close(states["grounded"], model.rollout(batch, EveryK(1))[3], rtol=0, atol=1e-6)
+
+
+def test_the_study_runs_a_registration_alone_on_a_mesh_that_does_not_move(trajs, config):
+    """`Stationary` keeps the mesh where it is (blind: every tick's error is state 0's against the truth), and
+    registered to the frames it tracks closer; the study's settings come from conf/online/registration.yaml,
+    overridden by text as a command line gives them, unknown ones refused."""
+    from ggns.bench.online import camera_frames
+    from ggns.bench.online_study import REGISTRATION_FILE, Stationary, registration_settings, track
+
+    world = trajs[0]
+    static = Stationary(make(GGNS))
+    depth = DepthProcessing.from_sensor_config(config["sensor"])
+    blind, _ = track(static, world, None, 1, 0, depth)
+    np.testing.assert_allclose(blind, ((world.positions[0] - world.positions[1:]) ** 2).mean(axis=(1, 2)), rtol=1e-5)
+    settings = registration_settings("plate", {"smoothness": "0.5", "iterations": "3"})
+    assert (settings.smoothness, settings.iterations) == (0.5, 3) and isinstance(settings.iterations, int)
+    assert "plate:" in REGISTRATION_FILE.read_text()
+    registered, fed = track(static, world, camera_frames(config, world), 1, 0, depth, settings)
+    assert fed == world.num_steps - 1 and registered.mean() < blind.mean()
+    with pytest.raises(ValueError, match="unknown registration settings"):
+        registration_settings("plate", {"smoothnes": "1"})

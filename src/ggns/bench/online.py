@@ -50,21 +50,21 @@ def data_preset(simulator: str, model: Any) -> str:
 
 
 def first_test_trajectories(preset: str, count: int, data_dir: str | os.PathLike | None = None,
-                      simulator: str | None = None) -> tuple[dict, list[Trajectory]]:
-    """(the preset's config, its first `count` test trajectories), read from <data_dir>/test.h5 (default: the
-    preset's output) and refused (DatasetError) when the file was made with another scene, solver or sensor
-    config; `simulator`, a shipped name: also refused when the data are not its training data's scene.
-    FileNotFoundError naming the command that makes the file."""
+                            simulator: str | None = None, split: str = "test") -> tuple[dict, list[Trajectory]]:
+    """(the preset's config, its first `count` trajectories of `split`, test by default), read from
+    <data_dir>/<split>.h5 (default: the preset's output) and refused (DatasetError) when the file was made with
+    another scene, solver or sensor config; `simulator`, a shipped name: also refused when the data are not its
+    training data's scene. FileNotFoundError naming the command that makes the file."""
     from ..data import split_path
     from ..data.schema import SplitReader, check_config
     from ..pretrained import check_data
 
     config = load_config(preset)
     directory = Path(data_dir if data_dir is not None else config["output"])
-    path = split_path(directory, "test")
+    path = split_path(directory, split)
     if not path.exists():
-        raise FileNotFoundError(f"{path}: missing; make it with `python -m ggns generate --config {preset} --split test "
-                                f"--count {count} --output {directory}` (or give its folder with --data-dir)")
+        raise FileNotFoundError(f"{path}: missing; make it with `python -m ggns generate --config {preset} --split "
+                                f"{split} --count {count} --output {directory}` (or give its folder with --data-dir)")
     with SplitReader(path) as reader:
         check_config(reader, config)
         if simulator is not None:

@@ -284,7 +284,10 @@ def bench_online_study(task: Literal["plate", "tissue"] = "tissue", trajectories
                        every: Sequence[int] = (1,), baseline: Sequence[str] = ("mgn", "mgn_m"),
                        checkpoint: dict[str, str] | None = None,
                        data_dir: str | None = None, output_dir: str = "lightning_logs/online_study",
-                       seed: int = 0) -> list[dict]:
+                       seed: int = 0,
+                       registered: Sequence[Literal["ggns", "ggns_blind", "mgn", "mgn_m", "static"]] = (),
+                       registration: dict[str, float] | None = None, split: Literal["test", "val"] = "test",
+                       grounded: bool = True) -> list[dict]:
     """The shipped GGNS tracking test trajectories online, fed the virtual cameras' depth frames late and flawed.
 
     The task's shipped GGNS is stepped through its first test trajectories (plate: plate_small, tissue:
@@ -305,12 +308,19 @@ def bench_online_study(task: Literal["plate", "tissue"] = "tissue", trajectories
         data_dir: the folder of the preset's test.h5 (default: the preset's output)
         output_dir: where online_study_raw.csv and online_study.md go
         seed: of the sensor's random flaws
+        registered: models also run blind with a registration to each frame (ggns: GGNS fed the frames and
+            registered; ggns_blind: GGNS blind; mgn, mgn_m: the baselines; static: the registration alone)
+        registration: Registration fields replacing the task's settings (conf/online/registration.yaml),
+            e.g. smoothness=0.3
+        split: the trajectories tracked (val: to choose the registration's settings)
+        grounded: run the GGNS fed the frames (false: only the blind and the registered runs)
     """
     from ..bench.online_study import online_study
 
     return online_study(task, trajectories, latencies=tuple(latency), sensors=tuple(sensor), every=tuple(every),
                         baselines=tuple(baseline), data_dir=data_dir, output_dir=output_dir, seed=seed,
-                        checkpoints=dict(checkpoint or {}))
+                        checkpoints=dict(checkpoint or {}), registered=tuple(registered),
+                        registration=dict(registration or {}), split=split, grounded=grounded)
 
 
 BENCH_COMMANDS = {"sim": bench_sim, "solvers": bench_solvers, "models": bench_models, "tradeoff": bench_tradeoff,

@@ -31,6 +31,7 @@ The weights are chosen on validation trajectories (docs/experiments/online_regis
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,7 +71,7 @@ class Registration:
     def __post_init__(self) -> None:
         for name in ("smoothness", "reverse", "anchor"):
             value = getattr(self, name)
-            if not np.isfinite(value) or value < 0:
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
                 raise ValueError(f"Registration.{name} must be a finite number >= 0, got {value!r}")
         if self.anchor == 0 and self.smoothness == 0:
             raise ValueError("Registration needs smoothness > 0 or anchor > 0 (else nodes far from every point are "
@@ -79,7 +80,7 @@ class Registration:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"Registration.{name} must be an integer >= 1, got {value!r}")
-        if self.trim is not None and not (np.isfinite(self.trim) and self.trim > 0):
+        if self.trim is not None and (not isinstance(self.trim, (int, float)) or not (np.isfinite(self.trim) and self.trim > 0)):
             raise ValueError(f"Registration.trim must be a number > 0 or None, got {self.trim!r}")
 
 
@@ -95,6 +96,22 @@ class ObjectGeometry:
         self.edges = torch.as_tensor(cell_edges(cells), device=device)
         self.held = torch.as_tensor(np.asarray(held, dtype=bool), device=device)
         self.boundary = torch.as_tensor(np.unique(boundary_facets(cells)), device=device)  # the outline's nodes
+        self._laplacian = None
+
+    def laplacian(self) -> Tensor:
+        """The mesh edges' graph Laplacian [N, N] (CSR, float64): sum over edges of (e_i - e_j)(e_i - e_j)^T."""
+        if self._laplacian is None:
+            i, j = self.edges[:, 0], self.edges[:, 1]
+            n = int(self.held.numel())
+            ones = torch.ones(len(i), dtype=torch.float64, device=self.edges.device)
+            coo = torch.sparse_coo_tensor(torch.stack([torch.cat([i, j, i, j]), torch.cat([i, j, j, i])]),
+                                          torch.cat([ones, ones, -ones, -ones]), (n, n), check_invariants=False).coalesce()
+            self._laplacian = _csr(*_csr_parts(coo), (n, n))
+        return self._laplacian
+
+    def mean_edge(self, positions: Tensor) -> float:
+        """The mean length of the mesh's edges at `positions` [N, d]."""
+        return float((positions[self.edges[:, 0]] - positions[self.edges[:, 1]]).norm(dim=1).mean())
 
 
 def register(config: Registration, geometry: ObjectGeometry, positions: Tensor, points: Tensor) -> Tensor:
@@ -104,50 +121,64 @@ def register(config: Registration, geometry: ObjectGeometry, positions: Tensor, 
         return positions
     x0 = positions.to(torch.float64)
     p = points.to(torch.float64)
+    n, d = x0.shape
     free = (~geometry.held).to(x0.dtype)[:, None]
-    i, j = geometry.edges[:, 0], geometry.edges[:, 1]
-    reach = None if config.trim is None else config.trim * float((x0[i] - x0[j]).norm(dim=1).mean())
+    laplacian = geometry.laplacian()
+    reach = None if config.trim is None else config.trim * geometry.mean_edge(x0)
     boundary = geometry.boundary
     displacement = torch.zeros_like(x0)
     for _ in range(config.iterations):
         facet, weights, distance = nearest_on_facets(x0 + displacement, geometry.facets, p)
-        corners = geometry.facets[facet]  # [P, 3] the nodes of each point's facet
-        foot = (weights[..., None] * (x0 + displacement)[corners]).sum(1)
         # Gauss-Newton on the distance to the nearest point: the residual along the direction to the point
-        # (the facet's normal where the foot is inside it); zero for a point on (2D: inside) the object
-        normal = (p - foot) / distance.clamp_min(1e-12)[:, None]
-        keep = (distance > 0).to(x0.dtype) if reach is None else ((distance > 0) & (distance <= reach)).to(x0.dtype)
-        target = ((p - (weights[..., None] * x0[corners]).sum(1)) * normal).sum(1) * keep  # [P]: n . (p - B X0)
-        pull = torch.zeros(len(x0), dtype=x0.dtype, device=x0.device)  # the reverse term's weight per node
-        nearest = x0
+        # (the facet's normal where the foot is inside it); none for a point on (2D: inside) the object
+        keep = (distance > 0) if reach is None else (distance > 0) & (distance <= reach)
+        facet, weights, distance, seen = facet[keep], weights[keep], distance[keep], p[keep]
+        corners = geometry.facets[facet]  # [P', 3] the nodes of each point's facet
+        foot = (weights[..., None] * (x0 + displacement)[corners]).sum(1)
+        normal = (seen - foot) / distance[:, None]
+        target = ((seen - (weights[..., None] * x0[corners]).sum(1)) * normal).sum(1)  # [P'] n . (p - B X0)
+        pick = _csr(torch.arange(0, 3 * len(corners) + 1, 3, device=x0.device), corners.reshape(-1), weights.reshape(-1),
+                    (len(corners), n))  # B: each point's foot from the nodes
+        flat = corners.reshape(-1)
+        spread_weights = weights.reshape(-1, 1)
+        pull = x0.new_zeros(n)
+        rhs = torch.zeros_like(x0).index_add_(0, flat, (weights[..., None] * (target[:, None] * normal)[:, None])
+                                              .reshape(-1, d))
         if config.reverse:
             gap, index = torch.cdist(x0[boundary] + displacement[boundary], p).min(1)
             within = torch.ones_like(gap) if reach is None else (gap <= reach).to(x0.dtype)
-            pull = pull.index_put((boundary,), config.reverse * within)
-            nearest = x0.index_put((boundary,), p[index])
+            pull[boundary] = config.reverse * within
+            rhs.index_add_(0, boundary, pull[boundary, None] * (p[index] - x0[boundary]))
+        diagonal = (config.anchor + pull)[:, None]
 
-        def spread(values: Tensor) -> Tensor:
-            """B^T of per-point vectors [P, d]: onto the nodes of each point's facet, by its weights."""
-            return torch.zeros_like(x0).index_add_(0, corners.reshape(-1),
-                                                   (weights[..., None] * values[:, None]).reshape(-1, x0.size(1)))
+        def apply(v: Tensor) -> Tensor:
+            """The normal equations' matrix times D [N, d], held rows and columns out."""
+            v = v * free
+            along = ((pick @ v) * normal).sum(1, keepdim=True) * normal  # [P', d]: n n^T B D
+            out = torch.zeros_like(v).index_add_(0, flat, (spread_weights * along.repeat_interleave(3, 0)))
+            return (out + config.smoothness * (laplacian @ v) + diagonal * v) * free
 
-        def apply(d: Tensor) -> Tensor:
-            """The normal-equations matrix times D [N, d] (held rows zero)."""
-            d = d * free
-            along = ((weights[..., None] * d[corners]).sum(1) * normal).sum(1) * keep  # n . (B D)
-            out = spread(along[:, None] * normal)
-            if config.smoothness:
-                diff = config.smoothness * (d[i] - d[j])
-                out.index_add_(0, i, diff).index_add_(0, j, -diff)
-            return (out + (config.anchor + pull)[:, None] * d) * free
+        displacement = conjugate_gradients(apply, rhs * free, displacement, config.cg_iterations) * free
+    return (x0 + displacement).to(positions.dtype)
 
-        rhs = (spread(target[:, None] * normal) + pull[:, None] * (nearest - x0)) * free
-        displacement = conjugate_gradients(apply, rhs, displacement, config.cg_iterations)
-    return (x0 + displacement * free).to(positions.dtype)
+
+def _csr(crow: Tensor, col: Tensor, values: Tensor, size: tuple[int, int]) -> Tensor:
+    """A CSR matrix from its parts (torch's CSR support is marked beta; its warning is not ours to print)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_csr_tensor(crow, col, values, size, check_invariants=False)
+
+
+def _csr_parts(coo: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(crow, col, values) of a coalesced COO matrix."""
+    rows, columns = coo.indices()
+    crow = torch.zeros(coo.size(0) + 1, dtype=torch.long, device=rows.device)
+    crow[1:] = torch.bincount(rows, minlength=coo.size(0)).cumsum(0)
+    return crow, columns, coo.values()
 
 
 def conjugate_gradients(apply, rhs: Tensor, start: Tensor, iterations: int) -> Tensor:
-    """x [N, d] with apply(x) = rhs (apply: an SPD linear map on [N, d]), from `start`, at most `iterations` steps."""
+    """x with apply(x) = rhs (apply: an SPD linear map on vectors), from `start`, at most `iterations` steps."""
     x = start.clone()
     r = rhs - apply(x)
     direction = r.clone()

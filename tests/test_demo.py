@@ -103,9 +103,11 @@ def test_the_online_demo_tracks_a_test_trajectory_with_late_noisy_frames(tiny_re
     report = run_online("plate", tmp_path, spec, trajectory=1, every=2, latency=1, noise=1.0)
     out = json.loads((tmp_path / "plate" / "online.json").read_text())
     curves = out["per_tick_mse"]
-    assert len(curves) == 4 and all(len(c) == 11 for c in curves.values())  # T = 12: ticks 1..11
+    assert len(curves) == 5 and all(len(c) == 11 for c in curves.values())  # T = 12: ticks 1..11
     grounded, blind = curves["GGNS, a frame every 2 ticks, 1 late"], curves["GGNS blind"]
     assert grounded[0] == blind[0] and grounded != blind  # the frame of tick 0 arrives at tick 1: the first step is blind
+    registered, mgn = curves["MGN + registration, the same frames"], curves["MGN (blind)"]
+    assert registered[0] == mgn[0] and registered != mgn  # registered from the first frame on, as GGNS is grounded
     assert (tmp_path / "plate" / "online.png").stat().st_size > 0 and "tracking MSE" in report.read_text()
     with pytest.raises(ValueError, match="every >= 1"):
         run_online("plate", tmp_path, spec, every=0)

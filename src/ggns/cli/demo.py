@@ -293,10 +293,11 @@ def run_online(task: str = "tissue", output: str | Path = "lightning_logs/demo",
     its virtual cameras' masked depth frames of every `every`-th tick arrive `latency` ticks late with the
     axial depth noise of `noise` times the Kinect's (`SensorConfig.axial_noise`, metres), and the shipped GGNS
     tracks it online (`ggns.online.OnlineSimulator`, the frames through `DepthProcessing`) beside the blind
-    GGNS, MGN and MGN(M). Writes online.png (the mesh MSE against the true state at each tick), online.json
+    GGNS, MGN and MGN(M), and beside MGN corrected by a registration to each frame (`ggns.online.Registration`,
+    the task's settings of conf/online/registration.yaml). Writes online.png (the mesh MSE against the true state at each tick), online.json
     (the per-tick errors and the settings) and online.md into <output>/<task>/; returns online.md."""
     from ..bench.online import camera_frames
-    from ..bench.online_study import METRES_PER_UNIT, track
+    from ..bench.online_study import METRES_PER_UNIT, registration_settings, track
     from ..config import load_config
     from ..online import DepthProcessing
     from ..sensors.camera import sensor_flaws
@@ -321,6 +322,8 @@ def run_online(task: str = "tissue", output: str | Path = "lightning_logs/demo",
     depth = DepthProcessing.from_sensor_config(config["sensor"])
     curves = {f"GGNS, a frame every {every} ticks, {latency} late": track(models["ggns"], world, frames, every,
                                                                            latency, depth)[0],
+              f"MGN + registration, the same frames": track(models["mgn"], world, frames, every, latency, depth,
+                                                            registration_settings(task))[0],
               "GGNS blind": track(models["ggns"], world, None, 1, 0, depth)[0],
               "MGN (blind)": track(models["mgn"], world, None, 1, 0, depth)[0],
               "MGN(M) (blind)": track(models["mgn_m"], world, None, 1, 0, depth)[0]}
@@ -337,7 +340,8 @@ def run_online(task: str = "tissue", output: str | Path = "lightning_logs/demo",
     text = "\n".join([f"# Online tracking: {task}, test trajectory {trajectory}", "",
                       f"The shipped GGNS stepped tick by tick, fed the virtual cameras' masked depth frames of every "
                       f"{every}-th tick {latency} tick(s) late with {noise:g}x the Kinect's axial noise, beside the "
-                      "blind models. Tracking error: the mean over ticks of the mesh MSE against the true state.", "",
+                      "blind models and MGN registered to the same frames (docs/online.md: which to use). Tracking "
+                      "error: the mean over ticks of the mesh MSE against the true state.", "",
                       markdown_table(["run", "tracking MSE", "grounded GGNS is"], rows), "",
                       f"![error over time]({figure.name})", ""])
     report = write_text(output / "online.md", text)

@@ -351,3 +351,19 @@ def test_module_dicts_take_type_tuples_and_keep_the_checkpoint_names():
     names = set(model.state_dict())
     assert {"processor.0.edge_mlp.collider__near__mesh.0.weight", "edge_encoder.collider__near__mesh.weight",
             "processor.0.node_mlp.mesh.0.weight", "node_encoder.collider.weight"} <= names
+
+
+def test_neighbour_counts_are_exact_past_what_bfloat16_holds():
+    """A node receiving 300 edges under bfloat16 (autocast's dtype on the CPU and the GPU): 1/300 to bfloat16's
+    precision, not 1/256 (bfloat16 counts integers exactly only up to 256)."""
+    receivers = torch.cat([torch.zeros(300, dtype=torch.long), torch.ones(3, dtype=torch.long)])
+    like = torch.zeros(1, dtype=torch.bfloat16)
+    inverse = inverse_counts(receivers, 3, like)
+    assert inverse.dtype == torch.bfloat16 and inverse.shape == (3, 1)
+    assert abs(float(inverse[0]) * 300 - 1) < 1 / 128  # bfloat16's relative precision
+    assert abs(float(inverse[0]) * 256 - 1) > 0.1  # what a count in bfloat16 gave
+    assert float(inverse[1]) == pytest.approx(1 / 3, rel=1 / 128) and float(inverse[2]) == 1.0
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        messages = torch.ones(303, 4)
+        pooled = mean_aggregate(messages.to(torch.bfloat16), receivers, inverse_counts(receivers, 3, messages.to(torch.bfloat16)))
+    assert torch.allclose(pooled.float()[:2], torch.ones(2, 4), rtol=1 / 64)

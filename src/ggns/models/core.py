@@ -128,9 +128,12 @@ def edge_packing_order(edge_types) -> list[EdgeType]:
 
 
 def inverse_counts(receivers: Tensor, size: int, like: Tensor) -> Tensor:
-    """1 / max(1, number of occurrences of each index in [0, size)) as [size, 1] (no host sync)."""
-    count = like.new_zeros(size, 1).index_add_(0, receivers, like.new_ones(len(receivers), 1))
-    return count.clamp(min=1).reciprocal()
+    """1 / max(1, number of occurrences of each index in [0, size)) as [size, 1] in `like`'s dtype (no host sync).
+    Counted in int32, not in `like`'s dtype: bfloat16 holds integers exactly only up to 256 (257 rounds to 256),
+    and a node can receive more edges than that (the tissue's gripper)."""
+    count = torch.zeros(size, 1, dtype=torch.int32, device=like.device).index_add_(
+        0, receivers, torch.ones(len(receivers), 1, dtype=torch.int32, device=like.device))
+    return count.clamp(min=1).to(torch.float32).reciprocal().to(like.dtype)
 
 
 def pack(data: HeteroData, like: Tensor, per_type_means: bool = False) -> PackedGraph:

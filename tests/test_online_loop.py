@@ -357,3 +357,32 @@ def test_the_study_runs_a_registration_alone_on_a_mesh_that_does_not_move(trajs,
     assert fed == world.num_steps - 1 and registered.mean() < blind.mean()
     with pytest.raises(ValueError, match="unknown registration settings"):
         registration_settings("plate", {"smoothnes": "1"})
+
+
+def test_the_comparison_summary_pairs_trajectories_and_tells_the_ratio_of_means(tmp_path):
+    """experiments/online_registration/scripts/summary.py on raw rows as the study writes them: the mean over
+    the trajectories every run of a setting has, the lowest run, GGNS over MGN + registration as a ratio of the
+    means and the trajectories where GGNS is below."""
+    import csv
+    import importlib.util
+
+    path = TESTS.parent / "experiments" / "online_registration" / "scripts" / "summary.py"
+    spec = importlib.util.spec_from_file_location("registration_summary", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    rows = []
+    for trajectory, (ggns, registered) in enumerate([(1.0, 2.0), (4.0, 2.0)]):
+        for model, mse, every in [("tissue/ggns", 9.0, "never"), ("tissue/mgn", 8.0, "never"), ("tissue/ggns", ggns, "1"),
+                                  ("tissue/mgn + registration", registered, "1")]:
+            rows.append({"model": model, "trajectory": trajectory, "every": every, "latency": "0" if every != "never" else "-",
+                         "sensor": "none" if every != "never" else "-", "tracking mse": mse, "ms per tick": 10.0})
+    raw = tmp_path / "raw.csv"
+    with raw.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    (row,) = module.summarize(module.read([raw]))
+    assert (row["GGNS"], row["MGN + reg"], row["MGN blind"]) == (2.5, 2.0, 8.0)
+    assert row["lowest"] == "MGN + reg" and row["ggns_over_registered_mgn"] == 1.25
+    assert row["ggns_below_registered_mgn"] == 1 and row["trajectories"] == 2
+    assert "1.25 (1 of 2)" in module.markdown([row])

@@ -87,7 +87,28 @@ run("generate", "--config", "plate", "--split", "test", "--count", "1", "--outpu
 run("rollout", "--checkpoint", "plate/ggns", "--input", "data/plate/test.h5", "--output", "predictions.h5")
 run("fit", "--config", "plate/mgn", "--data.dataset", "tiny12.yaml", "--data.data_dir", "data/plate_tiny12",
     "--trainer.fast_dev_run", "true", "--model.init_args.latent", "8", "--model.init_args.blocks", "1")
+# a graph preset of one's own (the shipped plate MGN's with a narrower world radius): its checkpoint holds the radii
+import yaml
+graph = yaml.safe_load((CONF_DIR / "graphs" / "plate_mgn.yaml").read_text())
+graph["world"] = 0.3
+Path("my_graph.yaml").write_text(yaml.safe_dump(graph))
+run("fit", "--config", "plate/mgn", "--data.dataset", "tiny12.yaml", "--data.data_dir", "data/plate_tiny12",
+    "--model.init_args.connectivity", "my_graph.yaml", "--model.init_args.latent", "8", "--model.init_args.blocks", "1",
+    "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "1", "--trainer.limit_val_batches", "1",
+    "--trainer.check_val_every_n_epoch", "1", "--trainer.logger.init_args.save_dir", "own_graph")
 """
     _run([str(bin_ / "python"), "-c", script], cwd=tmp_path, env={"OMP_NUM_THREADS": "1"})
+    # the checkpoint copied to an empty folder, where neither the preset nor the checkout is, loads and rolls out
+    (checkpoint,) = (tmp_path / "own_graph").rglob("last.ckpt")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    shutil.copy(checkpoint, elsewhere / "own.ckpt")
+    shutil.copy(tmp_path / "data" / "plate" / "test.h5", elsewhere / "test.h5")
+    _run([str(bin_ / "ggns"), "rollout", "--checkpoint", "own.ckpt", "--input", "test.h5", "--output", "own.h5"],
+         cwd=elsewhere, env={"OMP_NUM_THREADS": "1"})
+    assert (elsewhere / "own.h5").is_file()
+    radii = _run([str(bin_ / "python"), "-c", "from ggns.models.loading import load_simulator; "
+                  "print(load_simulator('own.ckpt').connectivity.world)"], cwd=elsewhere)
+    assert radii.strip().splitlines()[-1] == "0.3", radii
     assert (tmp_path / "data" / "plate" / "test.h5").is_file() and (tmp_path / "data" / "plate_tiny12" / "train.h5").is_file()
     assert (tmp_path / "predictions.h5").is_file()

@@ -8,6 +8,7 @@ import json
 import math
 import re
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -317,7 +318,8 @@ def test_every_variant_of_the_tissue_learning_files_parses(name, tmp_path):
     for run in variant_runs(load_learning(name, [f"output={tmp_path}"])):
         argv = run.fit_command()[4:]  # after `python -m ggns fit`: its config files and settings
         cli = build_cli(argv, run=False)
-        assert cli.model.hparams.dim == 3 and cli.model.hparams.connectivity.startswith(f"{task}_")
+        graph = Path(str(cli.config["model"]["init_args"]["connectivity"])).stem  # the preset named
+        assert cli.model.hparams.dim == 3 and graph.startswith(f"{task}_"), graph
         dataset = cli.datamodule.hparams.dataset  # the task's CPU data (tissue_cpu, tissue_cpu_60, cavity_tall_cpu)
         assert dataset.split("_")[0] == task and "cpu" in dataset.split("_"), dataset
 
@@ -331,8 +333,10 @@ def test_every_variant_of_the_plate_reach_learning_files_parses(name, tmp_path):
 
     for run in variant_runs(load_learning(name, [f"output={tmp_path}"])):
         argv = run.fit_command()[4:]  # after `python -m ggns fit`: its config files and settings
-        model = build_cli(argv, run=False).model
-        assert model.hparams.dim == 2 and model.hparams.connectivity.startswith("plate_")
+        cli = build_cli(argv, run=False)
+        model = cli.model
+        graph = Path(str(cli.config["model"]["init_args"]["connectivity"])).stem  # the preset named
+        assert model.hparams.dim == 2 and graph.startswith("plate_"), graph
         assert isinstance(model, GGNSID) == ("id" in run.model.split("_"))
         assert isinstance(model, MGNM) == (run.model == "mgn_m")
         assert model.edge_partition == (run.model.startswith("partition") or run.model == "mgn_m")

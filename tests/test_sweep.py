@@ -4,6 +4,7 @@ each metric family tested with the checkpoint selected on it, resume (finished r
 skipped), the fallbacks of fits without per-family checkpoints, and the SLURM job-array script."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -229,7 +230,9 @@ def test_every_run_of_every_sweep_preset_parses(preset, tmp_path):
         argv = run.fit_command()[4:]  # after `python -m ggns fit`; the logger's save_dir: the output, tmp_path
         cli = build_cli(argv, run=False)
         scene = cli.datamodule.hparams.dataset.split("_")[0]  # plate_small -> plate, tissue_cpu -> tissue
-        assert cli.model.hparams.connectivity.startswith(f"{scene}_")  # the model's graph is the data's scene's
+        graph = cli.config["model"]["init_args"]["connectivity"]  # the preset named; the model keeps its values
+        assert Path(str(graph)).stem.startswith(f"{scene}_"), graph  # the model's graph is the data's scene's
+        assert cli.model.hparams.connectivity == dataclasses.asdict(cli.model.connectivity)
 
 
 def _last(args: tuple, option: str) -> str | None:

@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import warnings
+from collections.abc import Mapping
 from typing import Any, Literal
 
 import pytorch_lightning as pl
@@ -79,7 +80,8 @@ class GraphSimulator(pl.LightningModule):
     """Shared base (module docstring).
 
     Args:
-        connectivity: graph preset (conf/graphs/<name>.yaml) or YAML path.
+        connectivity: graph preset (conf/graphs/<name>.yaml), a YAML path, or the preset's values (a mapping of
+            `Connectivity`'s fields); the hyperparameters keep the values, so a checkpoint is self-contained.
         dim: spatial dimension of the scene (2 or 3).
         latent: width of every latent vector of the core (paper: 128).
         blocks: message-passing blocks of the processor (paper: 5).
@@ -102,7 +104,7 @@ class GraphSimulator(pl.LightningModule):
     with_material = False  # Poisson's ratio as a mesh node feature, from the data (MGN(M))
     material_input = False  # a material column that the model fills itself (GGNSID), not the graph
 
-    def __init__(self, connectivity: str = "plate_full_graph", dim: int = 2, latent: int = 128, blocks: int = 5,
+    def __init__(self, connectivity: str | dict = "plate_full_graph", dim: int = 2, latent: int = 128, blocks: int = 5,
                  mlp_layers: int = 1, processor: Literal["shared", "per_type"] | None = None, point_probability: float = 0.5,
                  noise: TrainingNoise = TrainingNoise(), lr_schedule: LRSchedule = LRSchedule(), window: int = 1,
                  statistics_batches: int | None = None,
@@ -120,7 +122,12 @@ class GraphSimulator(pl.LightningModule):
             raise ValueError(f"processor must be one of {sorted(PROCESSORS)} (or None: the class's "
                              f"{self.default_processor!r}), got {processor!r}")
         self.processor = processor or self.default_processor
-        self.connectivity: Connectivity = load_connectivity(connectivity)
+        # a preset's name or path is resolved here, where it enters, and the hyperparameters keep its values: a
+        # checkpoint loads where the preset file is not
+        self.connectivity: Connectivity = (Connectivity.from_dict(dict(connectivity)) if isinstance(connectivity, Mapping)
+                                           else load_connectivity(connectivity))
+        self.hparams["connectivity"] = dataclasses.asdict(self.connectivity)
+        connectivity = connectivity if isinstance(connectivity, str) else "given"
         if self.noise.field_points_only and not self.connectivity.uses_points:
             raise ValueError(f"noise.field_points_only needs point clouds, and connectivity {connectivity!r} has no "
                              f"point edges")
@@ -489,7 +496,7 @@ class GraphSimulator(pl.LightningModule):
         if saved is not None:  # written before the search was a setting: this model's search
             saved = {"search": self.connectivity.search, **saved}
         if saved is not None and saved != dataclasses.asdict(self.connectivity):
-            warnings.warn(f"connectivity preset {self.hparams.connectivity!r} changed since the checkpoint was "
-                          f"written; using the checkpoint's radii {saved}", stacklevel=2)
+            warnings.warn(f"connectivity {dataclasses.asdict(self.connectivity)} differs from the checkpoint's; using "
+                          f"the checkpoint's radii {saved}", stacklevel=2)
             self.connectivity = Connectivity.from_dict(saved)
             self.neighbour_check = NeighbourCheck(self.connectivity, what="training")

@@ -90,6 +90,8 @@ def from_checkpoint(cls: type[GraphSimulator], checkpoint: dict, map_location=No
     """A `cls` built from a checkpoint dict's (upgraded) hyperparameters with its weights loaded strictly,
     in eval mode."""
     hparams = {k: v for k, v in upgrade_hparams(checkpoint["hyper_parameters"]).items() if not k.startswith("_")}
+    if checkpoint.get("connectivity") is not None:  # the radii the checkpoint was trained with: no preset file needed
+        hparams["connectivity"] = {"search": "auto", **checkpoint["connectivity"]}
     model = cls(**hparams)
     model.on_load_checkpoint(checkpoint)
     model.load_state_dict(checkpoint["state_dict"], strict=True)

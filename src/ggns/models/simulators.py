@@ -31,7 +31,7 @@ from .training_noise import TrainingNoise
 class GGNS(GraphSimulator):
     """Grounding Graph Network Simulator (one-hot types, shared processor, imputation training)."""
 
-    def __init__(self, connectivity: str = "plate_full_graph", point_probability: float = 0.5, **kwargs):
+    def __init__(self, connectivity: str | dict = "plate_full_graph", point_probability: float = 0.5, **kwargs):
         super().__init__(connectivity=connectivity, point_probability=point_probability, **kwargs)
 
 
@@ -66,7 +66,7 @@ class GGNSID(GGNS):
 
     material_input = True
 
-    def __init__(self, connectivity: str = "plate_full_graph", point_probability: float = 0.5,
+    def __init__(self, connectivity: str | dict = "plate_full_graph", point_probability: float = 0.5,
                  estimator_latent: int = 32, estimator_blocks: int = 3, material_loss_weight: float = 1.0,
                  estimator_noise: TrainingNoise = TrainingNoise(std=0.0), **kwargs):
         super().__init__(connectivity=connectivity, point_probability=point_probability, **kwargs)
@@ -178,7 +178,7 @@ class GGNSLSTM(GraphSimulator):
 
     recurrent = True
 
-    def __init__(self, connectivity: str = "plate_full_graph", point_probability: float = 0.5, window: int = 5,
+    def __init__(self, connectivity: str | dict = "plate_full_graph", point_probability: float = 0.5, window: int = 5,
                  backprop_steps: int | None = None, **kwargs):
         super().__init__(connectivity=connectivity, point_probability=point_probability, window=window, **kwargs)
         self.save_hyperparameters("backprop_steps")
@@ -193,7 +193,7 @@ class MGN(GraphSimulator):
 
     default_processor = "per_type"
 
-    def __init__(self, connectivity: str = "plate_mgn", point_probability: float = 0.0,
+    def __init__(self, connectivity: str | dict = "plate_mgn", point_probability: float = 0.0,
                  **kwargs):
         super().__init__(connectivity=connectivity, point_probability=point_probability, **kwargs)
 
@@ -209,7 +209,7 @@ class MGNShared(GraphSimulator):
     shared encoders, one shared processor) on mesh and collider edges only, no world edges, no
     point clouds. A second MGN row for a like-for-like comparison with the paper's numbers."""
 
-    def __init__(self, connectivity: str = "plate_mgn_shared", point_probability: float = 0.0,
+    def __init__(self, connectivity: str | dict = "plate_mgn_shared", point_probability: float = 0.0,
                  **kwargs):
         super().__init__(connectivity=connectivity, point_probability=point_probability, **kwargs)
 

@@ -126,6 +126,28 @@ def test_the_static_rollout_equals_the_eager_one(cls, trajs, val_batch):
                                                     model.with_material), rtol=1e-5, atol=1e-6)
 
 
+def test_the_static_step_keeps_its_most_recently_used_shapes(trajs, monkeypatch):
+    """With room for two batch shapes, shapes used A, B, A, C keep A and C (least recently used dropped), not B
+    and C (the oldest dropped), and a kept shape's buffers are used again."""
+    from ggns.evaluation import capture
+
+    monkeypatch.setattr(capture, "SLOTS", 2)
+    model = fitted(MGN, trajs).eval()
+    step = StaticStep(model, capture=False)
+    shapes = [TrajectoryBatch.from_trajectories(trajs["val"][:1]), TrajectoryBatch.from_trajectories(trajs["val"][:2]),
+              TrajectoryBatch.from_trajectories(trajs["train"][:3])]
+
+    def use(batch):
+        rollout(step, batch, Never(), model.connectivity, steps=2)
+        return step._slot
+
+    a, b = use(shapes[0]), use(shapes[1])
+    assert a is not b and use(shapes[0]) is a
+    c = use(shapes[2])
+    kept = list(step._slots.values())
+    assert len(kept) == 2 and any(s is a for s in kept) and any(s is c for s in kept) and not any(s is b for s in kept)
+
+
 def test_a_static_rollout_from_a_later_start_with_state_equals_the_eager_one(trajs, val_batch):
     model = fitted(GGNSLSTM, trajs).eval()
     step = StaticStep(model, capture=False)

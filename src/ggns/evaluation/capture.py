@@ -43,7 +43,7 @@ from .schedules import Schedule
 
 
 RECOMPILE_LIMIT = 256  # compiled layouts of `StaticStep.step_function` in one process (`compile=True`)
-SLOTS = 8  # batch shapes whose buffers and recording a `StaticStep` keeps (the oldest dropped beyond)
+SLOTS = 8  # batch shapes whose buffers and recording a `StaticStep` keeps (the least recently used dropped beyond)
 
 
 def recording_key(model, device: torch.device) -> tuple:
@@ -178,7 +178,9 @@ class StaticStep:
         layout = layout.grown(measure_pairs(batch, model.connectivity, layout), self.margin)
         key = (layout.num_graphs, tuple(layout.nodes.items()), tuple(layout.spans.items()), tuple(layout.edges),
                tuple(batch.positions.shape), batch.edges.size(1), self.model.recurrent)
-        if key not in self._slots:
+        if key in self._slots:
+            self._slots[key] = self._slots.pop(key)  # the most recently used last: the least recently used goes first
+        else:
             if len(self._slots) >= SLOTS:
                 self._slots.pop(next(iter(self._slots)))
             with torch.inference_mode(False):  # buffers that a later rollout outside inference mode may update

@@ -81,7 +81,7 @@ class StaticTrainStep:
     """The static training step of `model` (module docstring). capture: record forward, backward and the
     optimizer step as one CUDA graph (default: on a GPU, in float32 without autocast)."""
 
-    SLOTS = 16  # recordings kept (batch shapes), the oldest dropped beyond
+    SLOTS = 16  # recordings kept (batch shapes), the least recently used dropped beyond
 
     def __init__(self, model, capture: bool | None = None, margin: float = 1.5):
         if model.material_input:
@@ -242,7 +242,9 @@ class StaticTrainStep:
                 needed[edge_type] = max(needed[edge_type], int(math.ceil(seen)))
             layout = layout.grown(needed, self.margin)
         key = self._shape_key(layout, batch)
-        if key not in self._slots:
+        if key in self._slots:
+            self._slots[key] = self._slots.pop(key)  # the most recently used last: the least recently used goes first
+        else:
             if len(self._slots) >= self.SLOTS:
                 self._slots.pop(next(iter(self._slots)))
             with torch.inference_mode(False):

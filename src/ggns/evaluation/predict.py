@@ -22,9 +22,13 @@ from .schedules import Schedule, effective_schedule
 
 
 def model_scene(model) -> str | None:
-    """The scene a simulator was configured for, from its connectivity preset's name; None if it names none."""
-    name = Path(str(model.hparams.get("connectivity", ""))).stem
-    scene = name.split("_")[0]
+    """The scene a simulator was trained for: its checkpoint's training-data scene (`scene`, written with every
+    checkpoint of a fit), else the scene its connectivity preset is named after (a checkpoint written before the
+    scene was, or a model built from a preset's name); None if neither tells."""
+    scene = getattr(model, "scene", None)
+    if scene is None:
+        connectivity = model.hparams.get("connectivity", "")
+        scene = Path(connectivity).stem.split("_")[0] if isinstance(connectivity, str) else None
     return scene if scene in SCENES else None
 
 

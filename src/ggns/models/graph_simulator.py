@@ -27,6 +27,7 @@ import dataclasses
 import inspect
 import warnings
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any, Literal
 
 import pytorch_lightning as pl
@@ -103,6 +104,7 @@ class GraphSimulator(pl.LightningModule):
     backprop_steps: int | None = None  # truncated backpropagation (GGNSLSTM)
     with_material = False  # Poisson's ratio as a mesh node feature, from the data (MGN(M))
     material_input = False  # a material column that the model fills itself (GGNSID), not the graph
+    scene: str | None = None  # the scene of the training data, once loaded from a checkpoint that says
 
     def __init__(self, connectivity: str | dict = "plate_full_graph", dim: int = 2, latent: int = 128, blocks: int = 5,
                  mlp_layers: int = 1, processor: Literal["shared", "per_type"] | None = None, point_probability: float = 0.5,
@@ -488,10 +490,17 @@ class GraphSimulator(pl.LightningModule):
         self.raise_if_checks_failed()  # a step since the last read that went non-finite is never saved
         checkpoint["connectivity"] = dataclasses.asdict(self.connectivity)
         checkpoint["simulator_class"] = type(self).__name__
+        datamodule = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
+        scene = ((getattr(datamodule, "config", None) or {}).get("scene") or {}).get("name")
+        if scene is not None:  # the training data's scene: what `evaluation.predict.check_model_fits` compares
+            checkpoint["scene"] = str(scene)
         checkpoint[FORMAT_KEY] = CHECKPOINT_FORMAT
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         check_format(checkpoint, "the checkpoint")
+        named = (checkpoint.get("hyper_parameters") or {}).get("connectivity")
+        # the training data's scene (older checkpoints: the one their connectivity preset is named after)
+        self.scene = checkpoint.get("scene") or (Path(named).stem.split("_")[0] if isinstance(named, str) else None)
         saved = checkpoint.get("connectivity")
         if saved is not None:  # written before the search was a setting: this model's search
             saved = {"search": self.connectivity.search, **saved}

@@ -170,12 +170,13 @@ class GraphSimulator(pl.LightningModule):
         return node_dims, edge_dims
 
     def save_hyperparameters(self, *args, ignore=None, frame=None, logger: bool = True) -> None:
-        """Lightning's, with the components kept as dicts of their fields: checkpoints hold plain values
-        (`ggns.checkpoints`), and a subclass that saves its own arguments keeps them so too."""
+        """Lightning's, with the components kept as dicts of their fields (the connectivity's radii, not its preset's
+        name): checkpoints hold plain values (`ggns.checkpoints`), and a subclass that saves its own arguments keeps
+        them so too."""
         super().save_hyperparameters(*args, ignore=ignore, frame=frame or inspect.currentframe().f_back,
                                      logger=logger)
-        for key in list(self.hparams):  # `noise`, `lr_schedule`, GGNSID's `estimator_noise`
-            if isinstance(getattr(self, key, None), (TrainingNoise, LRSchedule)):
+        for key in list(self.hparams):  # `noise`, `lr_schedule`, GGNSID's `estimator_noise`, `connectivity` once built
+            if isinstance(getattr(self, key, None), (TrainingNoise, LRSchedule, Connectivity)):
                 self.hparams[key] = dataclasses.asdict(getattr(self, key))
 
     def processor_layout(self) -> dict:

@@ -125,8 +125,9 @@ def test_packaging_writes_a_complete_manifest(tiny_registry):
     assert manifest["test"]["trajectories"] == 2
     assert len(manifest["test"]["per_trajectory"]["rollout_mse_k1"]) == 2
     assert "val/rollout_mse_k1" in manifest["validation"]
-    # the fit's optimizer steps (its last checkpoint's), which its last validation also ran at (the fallback of
-    # `training_budget` for manifests written before packaging recorded them)
+    # the fit's optimizer steps (its last checkpoint's): the tiny fits end with an epoch's validation, so the
+    # last validation ran there too (the fallback of `training_budget` for manifests written before packaging
+    # recorded the steps)
     steps = manifest["trained_by"]["optimizer_steps"]
     assert steps >= manifest["source"]["global_step"] > 0
     assert steps == max(step for curve in manifest["validation"].values() for step, _ in curve)

@@ -64,7 +64,9 @@ def manifest(name: str) -> dict:
 def training_budget(manifest: dict) -> dict:
     """What a shipped simulator's training run was given and used, from its manifest: `optimizer_steps` (the
     optimizer steps its fit ran: the manifest's `trained_by.optimizer_steps`, the run's last checkpoint's step,
-    where packaging wrote it, else `last_validation_step`, since every fit validates at its last step),
+    where packaging wrote it, else `last_validation_step`: a fit stopped by its wall-clock budget validates at its
+    last step, as those of the files packaged before the steps were recorded did; one stopped by `max_steps` need
+    not, so packaging records them),
     `max_time_minutes` (the fit's wall-clock budget, its command's last `--trainer.max_time`; None without
     one), `max_steps` (its command's last `--trainer.max_steps`; None without one), `fit_minutes` (its
     first to last logged event), `last_validation_step` (the newest step of its validation curves) and

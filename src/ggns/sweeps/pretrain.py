@@ -36,7 +36,7 @@ from .sweep import Run, load_sweep, runs_of
 SPEC = CONF_DIR / "pretrained.yaml"
 # what a shipped checkpoint keeps of a Lightning checkpoint (`python -m ggns test --ckpt_path` needs no more)
 KEPT = ("epoch", "global_step", "pytorch-lightning_version", "state_dict", "hparams_name", "hyper_parameters",
-        "connectivity", "simulator_class")
+        "connectivity", "simulator_class", "scene")
 
 
 def load_spec(path: str | Path = SPEC) -> dict:

@@ -57,3 +57,22 @@ def test_the_report_pairs_equal_steps_and_marks_unfinished_runs(tmp_path):
 def test_no_logs_is_an_error_naming_the_folder(tmp_path):
     with pytest.raises(SystemExit, match="no run of"):
         _load().main(["--sweep", str(tmp_path), "--output", str(tmp_path / "out")])
+
+
+def test_a_run_without_logs_is_kept_from_an_earlier_report(tmp_path):
+    """GGNS's logs gone, its earlier raw files kept: the new baseline is paired with GGNS's kept validations."""
+    sweep, earlier = tmp_path / "sweep", tmp_path / "earlier"
+    _log(sweep / "ggns" / "seed_0", {4000: {"val/rollout_mse_k1": 1e-4}, 8000: {"val/rollout_mse_k1": 5e-5}}, 0.1)
+    module = _load()
+    module.main(["--sweep", str(sweep), "--output", str(earlier)])
+    (sweep / "ggns" / "seed_0").rename(tmp_path / "gone")
+    _log(sweep / "mgn" / "seed_0", {4000: {"val/rollout_mse_never": 4e-3}, 8000: {"val/rollout_mse_never": 3e-3}}, 0.05)
+    out = tmp_path / "out"
+    report = module.main(["--sweep", str(sweep), "--output", str(out), "--baselines", "mgn", "--earlier", str(earlier)])
+    ratios = list(csv.DictReader((out / "ratios.csv").open()))
+    assert [float(r["ratio"]) for r in ratios] == pytest.approx([40.0, 60.0])
+    status = {r["model"]: r for r in csv.DictReader((out / "status.csv").open())}
+    assert (status["ggns"]["optimizer_steps"], status["mgn"]["optimizer_steps"]) == ("8000", "8000")
+    assert "Kept from the earlier report's raw files (no logs under the sweep): ggns." in report.read_text()
+    with pytest.raises(SystemExit, match="no validations.csv"):
+        module.main(["--sweep", str(sweep), "--output", str(out), "--earlier", str(tmp_path / "nothing")])

@@ -8,7 +8,9 @@ blind baseline both validated, the baseline's full rollout MSE over GGNS's k=1 (
 Writes validations.csv (one row per run and validation step), ratios.csv (step, baseline, ratio), status.csv
 (per run: optimizer steps reached, training seconds, steps per training second, wall minutes from first to
 last event, whether the run's fit finished), report.md (the tables) and curves_steps.png. Runs partway
-through are reported as far as they went, and status.csv says so."""
+through are reported as far as they went, and status.csv says so. A run whose logs are gone (e.g. it ran on
+another machine) is kept from an earlier report's raw files with --earlier DIR: its rows of DIR/validations.csv
+and DIR/status.csv, used only for models that have no logs under --sweep."""
 from __future__ import annotations
 
 import argparse
@@ -58,6 +60,43 @@ def run_status(sweep: Path, model: str, seed: int, scalars: dict, max_steps: int
             "finished": bool(finished), "tested": tested}
 
 
+def _value(text: str):
+    """A cell of a csv this script wrote: None for an empty cell, else an int, a float or the text."""
+    if text == "":
+        return None
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return {"True": True, "False": False}.get(text, text)
+
+
+def read_earlier(directory: Path, models: list[str]) -> tuple[list[dict], list[dict]]:
+    """The validation rows and status rows of `models` in an earlier report's validations.csv and status.csv."""
+    def rows(name: str) -> list[dict]:
+        path = directory / name
+        if not path.is_file():
+            sys.exit(f"--earlier {directory}: no {name} there")
+        with path.open(newline="") as f:
+            return [{k: _value(v) for k, v in row.items()} for row in csv.DictReader(f)]
+    return ([r for r in rows("validations.csv") if r["variant"] in models],
+            [r for r in rows("status.csv") if r["model"] in models])
+
+
+def curves_from_rows(rows: list[dict]) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """`read_scalars`-shaped validation curves of one run rebuilt from its validation rows (wall times unknown)."""
+    from ggns.sweeps.curves import VALIDATIONS
+
+    curves = {}
+    for tag in VALIDATIONS:
+        points = [(r["step"], r[tag.removeprefix("val/")]) for r in rows if r[tag.removeprefix("val/")] is not None]
+        if points:
+            steps, values = map(np.array, zip(*sorted(points)))
+            curves[tag] = (steps.astype(float), np.full(len(steps), np.nan), values.astype(float))
+    return curves
+
+
 def write_csv(path: Path, rows: list[dict]) -> None:
     with path.open("w", newline="") as f:
         if rows:
@@ -77,19 +116,27 @@ def main(argv: list[str] | None = None) -> Path:
     parser.add_argument("--baselines", nargs="+", default=["mgn", "mgn_m"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max-steps", type=int, default=None, help="the budget every run was given")
+    parser.add_argument("--earlier", type=Path, default=None,
+                        help="an earlier report's folder: runs with no logs under --sweep are kept from its raw files")
     args = parser.parse_args(argv)
     models = [args.ggns, *args.baselines]
     runs = read_runs(args.sweep, models, args.seed)
-    if not runs:
+    kept_rows, kept_status = read_earlier(args.earlier, [m for m in models if m not in runs]) if args.earlier else ([], [])
+    if not runs and not kept_rows:
         sys.exit(f"no run of {models} with logs under {args.sweep}")
     args.output.mkdir(parents=True, exist_ok=True)
-    rows = [row for model, scalars in runs.items() for row in validation_rows(model, scalars)]
+    kept = {m: [r for r in kept_rows if r["variant"] == m] for m in models if m not in runs}
+    kept = {m: r for m, r in kept.items() if r}
+    rows = [row for m in models for row in (validation_rows(m, runs[m]) if m in runs else kept.get(m, []))]
     ratios = grounding_ratios(rows, args.ggns, args.baselines)
-    status = [run_status(args.sweep, m, args.seed, s, args.max_steps) for m, s in runs.items()]
+    status = {m: run_status(args.sweep, m, args.seed, s, args.max_steps) for m, s in runs.items()}
+    status.update({s["model"]: s for s in kept_status})
+    status = [status[m] for m in models if m in status]
+    curves = {m: runs[m] if m in runs else curves_from_rows(kept[m]) for m in models if m in runs or m in kept}
     write_csv(args.output / "validations.csv", rows)
     write_csv(args.output / "ratios.csv", ratios)
     write_csv(args.output / "status.csv", status)
-    plot_curves(runs, args.output / "curves_steps.png", "steps", title="model")
+    plot_curves(curves, args.output / "curves_steps.png", "steps", title="model")
     ratio_lines = [[str(r["step"]), r["baseline"], f"{r['ggns_k1']:.3g}", f"{r['baseline_never']:.3g}", f"{r['ratio']:.2f}"]
                    for r in ratios]
     status_lines = [[s["model"], f"{s['optimizer_steps']:,}", "-" if s["budget_steps"] is None else f"{s['budget_steps']:,}",
@@ -97,10 +144,14 @@ def main(argv: list[str] | None = None) -> Path:
                      "-" if s["steps_per_train_second"] is None else str(s["steps_per_train_second"]),
                      f"{s['wall_minutes']:.1f}", "yes" if s["finished"] else "no (running or stopped)",
                      "yes" if s["tested"] else "no"] for s in status]
+    from_earlier = list(kept)
     text = "\n".join([
         f"# Equal-step curves: {args.sweep.name}, seed {args.seed}", "",
         f"`python experiments/plate_cpu/scripts/equal_steps_report.py --sweep {args.sweep} --output {args.output}"
-        + (f" --max-steps {args.max_steps}" if args.max_steps else "") + "`", "",
+        + (f" --max-steps {args.max_steps}" if args.max_steps else "")
+        + (f" --earlier {args.earlier}" if args.earlier else "") + "`", "",
+        *([f"Kept from the earlier report's raw files (no logs under the sweep): {', '.join(from_earlier)}.", ""]
+          if from_earlier else []),
         "## Runs", "",
         markdown_table(["model", "optimizer steps reached", "budget", "training minutes", "steps per training second",
                         "wall minutes (first to last event)", "fit finished", "tested"], status_lines), "",

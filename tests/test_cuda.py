@@ -296,6 +296,10 @@ def test_a_training_step_synchronizes_only_in_its_radius_queries(splits):
 
     from ggns import phases
     from ggns.bench.step_profile import HostReads
+    from ggns.graphs.search import cluster_runs_on
+
+    # the eager step's search on a GPU is torch-cluster only where it was built with CUDA (gpu_check.sh does)
+    assert cluster_runs_on(CUDA), "torch-cluster here was built without CUDA: build it as scripts/gpu_check.sh does"
 
     pos = torch.rand(50, 3, device=CUDA)
     graph_of = torch.arange(2, device=CUDA).repeat_interleave(25)

@@ -363,3 +363,40 @@ def test_the_import_probe_times_a_fresh_import_and_the_sweep_processes_import_no
              "print(heavy); assert not heavy")
     done = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True)
     assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_the_eager_search_takes_torch_cluster_wherever_it_runs(monkeypatch):
+    """`search: auto` routes one way on every device: torch-cluster where its build runs on the tensors'
+    device (a CPU build on the CPU, a CUDA build on a GPU), else the static search; `cluster` where it
+    cannot run says why. The GPU's routing is decided by the build, which the CPU can stand in for."""
+    from ggns.graphs import search
+
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    assert search._use_cluster("auto", cpu) and search._use_cluster("cluster", cpu)
+    assert not search._use_cluster("static", cpu) and not search._use_cluster("static", cuda)
+    assert search._cluster_has_cuda() == (int(torch.ops.torch_cluster.cuda_version()) != -1)
+    monkeypatch.setattr(search, "_cluster_has_cuda", lambda: True)  # as a CUDA build answers
+    assert search._use_cluster("auto", cuda) and search._use_cluster("cluster", cuda)
+    monkeypatch.setattr(search, "_cluster_has_cuda", lambda: False)  # as a CPU-only build answers
+    assert not search._use_cluster("auto", cuda)
+    with pytest.raises(RuntimeError, match="built without CUDA"):
+        search._use_cluster("cluster", cuda)
+    monkeypatch.setattr(search, "torch_cluster", None)
+    assert not search._use_cluster("auto", cpu)
+    with pytest.raises(ImportError, match="not installed"):
+        search._use_cluster("cluster", cpu)
+
+
+def test_the_static_eager_search_reads_twice_per_radius_query(trajs):
+    """Without a torch-cluster for the device the eager builder's radius query is the static search, read
+    twice (the largest graph's node count, the found pairs' count)."""
+    import dataclasses
+
+    model = make(GGNS, statistics_batches=1, point_probability=1.0)
+    model.connectivity = dataclasses.replace(model.connectivity, search="static")
+    batch = collate([trajs["train"][0].steps(2, 4), trajs["train"][1].steps(0, 2)])
+    model.fit_normalizers([batch])
+    graphs = [graph for graph, _ in model.training_graphs(batch, train=False)]
+    reads = _reads(lambda: model.window_loss(batch).backward())
+    queries = sum(_radius_queries(model.connectivity, graph.node_types) for graph in graphs)
+    assert queries > 0 and reads == {"__int__": 2 * queries}, (reads, queries)

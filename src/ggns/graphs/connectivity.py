@@ -23,8 +23,8 @@ class Connectivity:
 
     max_num_neighbors: the most neighbours one node may find in one radius query; the graph
     builder raises (never drops edges) when any node has more.
-    search: the eager graph builder's neighbour search (`graphs.search`): "auto" (torch-cluster on the
-    CPU when it is installed, else the static search), "cluster" or "static". The static steps
+    search: the eager graph builder's neighbour search (`graphs.search`): "auto" (torch-cluster where it
+    runs on the graph's device, on a GPU when built with CUDA; else the static search), "cluster" or "static". The static steps
     (`StaticStep`, `StaticTrainStep`) always use the static search. Optional in a preset.
     """
 

@@ -21,11 +21,12 @@ rows (a batch value of `num_graphs` or more: the static builder's padded point s
 are found.
 
 `radius` and `knn` at the bottom are the dynamic searches of the eager graph builder: torch-cluster
-when it is installed (the CPU default and the reference), else the static search with its output
-compacted to the exact edge count (one read).
+wherever it can run on the tensors' device (the reference; on a GPU only when it was built with CUDA),
+else the static search with its output compacted to the exact edge count (one read).
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -163,8 +164,8 @@ def radius(x: Tensor, y: Tensor, r: float, batch_x: Tensor, batch_y: Tensor, max
            num_graphs: int, search: str = "auto") -> Tensor:
     """Pairs [2, E] (row 0: query row in y, row 1: source row in x), as `torch_cluster.radius` returns
     them, at most `max_num_neighbors` per query. search: "cluster" (torch-cluster), "static" (the
-    static search, compacted to its exact size with one read), "auto" (torch-cluster on the CPU when
-    installed, else the static search)."""
+    static search, compacted to its exact size with one read), "auto" (torch-cluster where it runs on
+    the tensors' device, `cluster_runs_on`, else the static search)."""
     if _use_cluster(search, y.device):
         return torch_cluster.radius(x, y, r, batch_x, batch_y, max_num_neighbors=max_num_neighbors,
                                     batch_size=num_graphs)
@@ -192,9 +193,30 @@ def _pairs(found: Neighbours) -> Tensor:
 SEARCHES = ("auto", "cluster", "static")
 
 
+def cluster_runs_on(device: torch.device) -> bool:
+    """Whether torch-cluster is installed and runs on `device`: any CPU build on the CPU, on a GPU a build
+    with CUDA (`torch_cluster`'s `cuda_version()` is -1 in a CPU-only build). Under `checks.gpu_code_paths`
+    the CPU takes torch-cluster as a GPU with a CUDA build does, so the CPU's count of host reads is that GPU's."""
+    if torch_cluster is None:
+        return False
+    if device.type == "cpu":
+        return True
+    return device.type == "cuda" and _cluster_has_cuda()
+
+
+@functools.cache
+def _cluster_has_cuda() -> bool:
+    return int(torch.ops.torch_cluster.cuda_version()) != -1
+
+
 def _use_cluster(search: str, device: torch.device) -> bool:
     if search not in SEARCHES:
         raise ValueError(f"neighbour search must be one of {SEARCHES}, got {search!r}")
-    if search == "cluster" and torch_cluster is None:
-        raise ImportError("neighbour search 'cluster' needs torch-cluster, which is not installed; use 'static'")
-    return search == "cluster" or (search == "auto" and torch_cluster is not None and device.type == "cpu")
+    if search == "cluster":
+        if torch_cluster is None:
+            raise ImportError("neighbour search 'cluster' needs torch-cluster, which is not installed; use 'static'")
+        if not cluster_runs_on(device):
+            raise RuntimeError(f"neighbour search 'cluster' on {device}: the installed torch-cluster was built without "
+                               f"CUDA (scripts/gpu_check.sh builds it with FORCE_ONLY_CUDA=1); use 'auto' or 'static'")
+        return True
+    return search == "auto" and cluster_runs_on(device)

@@ -23,7 +23,7 @@ from ggns.graphs.search import compact, static_knn, static_radius
 from ggns.callbacks import TestEvaluation
 from ggns.models.simulators import GGNS, GGNSID, GGNSLSTM, MGN, MGNM
 from ggns.callbacks import StaticRollouts, StaticTraining
-from ggns.models.static_training import StaticTrainStep, bucket
+from ggns.models.static_training import StaticTrainStep, bucket, capturable_optimizer
 
 from conftest import TINY12, eager_losses, make
 
@@ -307,6 +307,45 @@ def test_fifty_static_training_steps_equal_the_eager_ones(cls, optimizer, steps,
     torch.testing.assert_close(torch.tensor(static), torch.tensor(eager), rtol=1e-5, atol=1e-7)
     for (name, a), b in zip(model.named_parameters(), twin.parameters()):
         torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-6, msg=name)
+
+
+def test_a_decaying_lr_reaches_the_static_step_through_the_tensor_the_recording_reads(trajs):
+    """The optimizer a recorded step needs (capturable, lr a tensor on the device) under a schedule that decays
+    every 3 steps: the schedule updates that one tensor in place (a recording reads it, a float would be frozen
+    into it), its values are the schedule's, and the losses equal the eager steps' under the same schedule."""
+    schedule = {"lr": 1e-3, "decay_rate": 0.1, "decay_steps": 3, "final": 1e-5}
+    model = make(GGNS, noise={"std": 0.0}, lr_schedule=schedule)
+    batches = windows(trajs, model, 12)
+    model.fit_normalizers(batches[:1])
+    twin = copy.deepcopy(model)
+    eager_config, static_config = model.configure_optimizers(), twin.configure_optimizers()
+    eager_optimizer, eager_scheduler = eager_config["optimizer"], eager_config["lr_scheduler"]["scheduler"]
+    static_optimizer, static_scheduler = static_config["optimizer"], static_config["lr_scheduler"]["scheduler"]
+    capturable_optimizer(static_optimizer, torch.device("cpu"))
+    lr = static_optimizer.param_groups[0]["lr"]
+    assert isinstance(lr, torch.Tensor) and float(lr) == pytest.approx(1e-3)
+    torch.manual_seed(1)
+    eager = []
+    for batch in batches:
+        eager_optimizer.zero_grad()
+        loss = model.window_loss(batch)
+        loss.backward()
+        eager_optimizer.step()
+        eager_scheduler.step()
+        eager.append(loss.item())
+    step = StaticTrainStep(twin, margin=4.0)
+    torch.manual_seed(1)
+    static = []
+    for n, batch in enumerate(batches):
+        static.append(step.step(batch, static_optimizer).item())
+        step.read_capacities()
+        static_scheduler.step()
+        assert static_optimizer.param_groups[0]["lr"] is lr  # updated in place, not replaced
+        assert float(lr) == pytest.approx(twin.lr_schedule.at(n + 1), rel=1e-6)
+    assert float(lr) < 1e-4  # it did decay (to the floor's neighbourhood)
+    assert float(lr) == pytest.approx(eager_optimizer.param_groups[0]["lr"], rel=1e-6)
+    assert step.skipped == 0
+    torch.testing.assert_close(torch.tensor(static), torch.tensor(eager), rtol=1e-5, atol=1e-7)
 
 
 def test_the_static_training_step_reads_nothing_and_compiles_with_its_backward(trajs):

@@ -77,6 +77,20 @@ class WindowBuffers:
     most: Tensor  # [types, 3] long: the neighbour check's table of the last step
 
 
+def capturable_optimizer(optimizer, device: torch.device) -> None:
+    """Ready a fused Adam for a recorded step on `device`: capturable, and every group's lr a tensor on the
+    device, which the lr schedule then updates in place (a float would be recorded as a constant; a
+    resumed optimizer's tensor comes back on the CPU and is moved)."""
+    for group in optimizer.param_groups:
+        if not group.get("fused"):
+            raise ValueError("a captured training step needs a fused Adam (its found_inf skips a step that "
+                             "dropped edges); the simulators' configure_optimizers gives one")
+        group["capturable"] = True  # Adam.step refuses a capture otherwise; the fused kernel does not read it
+        lr = group["lr"]
+        if not (isinstance(lr, Tensor) and lr.device == device):
+            group["lr"] = torch.tensor(float(lr), dtype=torch.float32, device=device)
+
+
 class StaticTrainStep:
     """The static training step of `model` (module docstring). capture: record forward, backward and the
     optimizer step as one CUDA graph (default: on a GPU, in float32 without autocast)."""
@@ -318,15 +332,7 @@ class StaticTrainStep:
         warm-up's updates skipped through `found_inf`, the random state restored), then record forward,
         backward and the optimizer step (PyTorch's whole-network capture), autocast's cache off."""
         b = self.buffers
-        for group in optimizer.param_groups:
-            if not group.get("fused"):
-                raise ValueError("a captured training step needs a fused Adam (its found_inf skips a step that "
-                                 "dropped edges); the simulators' configure_optimizers gives one")
-            group["capturable"] = True  # Adam.step refuses a capture otherwise; the fused kernel does not read it
-            lr = group["lr"]
-            if not (isinstance(lr, Tensor) and lr.device == self.device):  # a float is recorded as a constant;
-                # a tensor on the device is what the schedule's fill_ reaches (a resumed one comes back on the CPU)
-                group["lr"] = torch.tensor(float(lr), dtype=torch.float32, device=self.device)
+        capturable_optimizer(optimizer, self.device)
         cast = torch.autocast("cuda", enabled=torch.is_autocast_enabled("cuda"),
                               dtype=torch.get_autocast_dtype("cuda"), cache_enabled=False)
         with torch.cuda.device(self.device):

@@ -76,3 +76,31 @@ def test_a_run_without_logs_is_kept_from_an_earlier_report(tmp_path):
     assert "Kept from the earlier report's raw files (no logs under the sweep): ggns." in report.read_text()
     with pytest.raises(SystemExit, match="no validations.csv"):
         module.main(["--sweep", str(sweep), "--output", str(out), "--earlier", str(tmp_path / "nothing")])
+
+
+def test_the_test_ratios_and_the_power_law_of_ggns_k1(tmp_path):
+    """k=1 logged as 1e-2 * step^-0.5 from step 20,000 on (and a point before it the fit must leave out): the
+    fitted exponent is -0.5 and the law reaches 1e-5 at step 1e6; the test ratio is the baseline's never over
+    GGNS's k=1 from their test_metrics.json."""
+    import json
+
+    sweep = tmp_path / "sweep"
+    law = {s: {"val/rollout_mse_k1": 1e-2 * s ** -0.5, "val/rollout_mse_never": 1e-3} for s in (20000, 40000, 80000)}
+    _log(sweep / "ggns" / "seed_0", {4000: {"val/rollout_mse_k1": 1.0, "val/rollout_mse_never": 1.0}, **law}, 0.1)
+    _log(sweep / "mgn" / "seed_0", {80000: {"val/rollout_mse_never": 3e-3}}, 0.1)
+    for model, metrics in {"ggns": {"rollout_mse_k1": 4e-5, "rollout_mse_never": 3e-3},
+                           "mgn": {"rollout_mse_never": 2e-3, "one_step_mse": 1e-6}}.items():
+        (sweep / model / "seed_0_test").mkdir()
+        (sweep / model / "seed_0_test" / "test_metrics.json").write_text(json.dumps(
+            {**{k: {"mean": v, "std": v / 10, "count": 27} for k, v in metrics.items()}, "checkpoints": {"k1": "x"}}))
+    report = _load().main(["--sweep", str(sweep), "--output", str(tmp_path / "out"), "--baselines", "mgn",
+                           "--fit-from", "20000", "--target", "1e-5"])
+    out = tmp_path / "out"
+    (fit,) = list(csv.DictReader((out / "fit.csv").open()))
+    assert (int(fit["points"]), int(fit["fit_to"])) == (3, 80000)
+    assert float(fit["exponent"]) == pytest.approx(-0.5, rel=1e-4)
+    assert int(fit["steps_to_target"]) == pytest.approx(1_000_000, rel=1e-3)
+    tests = {(r["model"], r["metric"]): float(r["mean"]) for r in csv.DictReader((out / "tests.csv").open())}
+    assert tests[("mgn", "ratio_never_to_ggns_k1")] == pytest.approx(50.0)
+    assert ("ggns", "checkpoints") not in tests
+    assert "reaches 1e-05 at step" in report.read_text()

@@ -10,7 +10,12 @@ Writes validations.csv (one row per run and validation step), ratios.csv (step, 
 last event, whether the run's fit finished), report.md (the tables) and curves_steps.png. Runs partway
 through are reported as far as they went, and status.csv says so. A run whose logs are gone (e.g. it ran on
 another machine) is kept from an earlier report's raw files with --earlier DIR: its rows of DIR/validations.csv
-and DIR/status.csv, used only for models that have no logs under --sweep."""
+and DIR/status.csv, used only for models that have no logs under --sweep.
+
+Also: tests.csv, each tested run's test metrics (the sweep's <model>/seed_<seed>_test/test_metrics.json) and
+the test grounding ratios; fit.csv, a power law fitted to GGNS's validation k=1 curve from --fit-from on
+(least squares of log MSE on log step) and the step at which that law reaches --target (the paper's plate
+GGNS k=1 test MSE, 1.86e-5, by default): an extrapolation of the fitted law, not a measurement."""
 from __future__ import annotations
 
 import argparse
@@ -20,6 +25,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
+
+REPORTED = ("rollout_mse_k1", "rollout_mse_never", "one_step_mse", "m10_mse")  # the test metrics report.md shows
 
 
 def read_runs(sweep: Path, models: list[str], seed: int) -> dict[str, dict]:
@@ -97,6 +105,46 @@ def curves_from_rows(rows: list[dict]) -> dict[str, tuple[np.ndarray, np.ndarray
     return curves
 
 
+def test_rows(sweep: Path, models: list[str], seed: int) -> list[dict]:
+    """One row per tested run and test metric: {model, metric, mean, std, count} from its test_metrics.json."""
+    import json
+
+    rows = []
+    for model in models:
+        path = sweep / model / f"seed_{seed}_test" / "test_metrics.json"
+        if path.is_file():
+            metrics = json.loads(path.read_text())
+            rows += [{"model": model, "metric": name, "mean": value["mean"], "std": value.get("std"),
+                      "count": value.get("count")} for name, value in metrics.items()
+                     if isinstance(value, dict) and "mean" in value]
+    return rows
+
+
+def test_ratios(tests: list[dict], ggns: str, baselines: list[str]) -> list[dict]:
+    """Each tested baseline's test rollout_mse_never over GGNS's test rollout_mse_k1."""
+    mean = {(r["model"], r["metric"]): r["mean"] for r in tests}
+    k1 = mean.get((ggns, "rollout_mse_k1"))
+    return [] if k1 is None else [
+        {"baseline": b, "ggns_k1": k1, "baseline_never": mean[(b, "rollout_mse_never")],
+         "ratio": mean[(b, "rollout_mse_never")] / k1} for b in baselines if (b, "rollout_mse_never") in mean]
+
+
+def power_law(rows: list[dict], ggns: str, fit_from: int, target: float) -> dict | None:
+    """log(k1) = a + b log(step) fitted to `ggns`'s validation k=1 at steps >= fit_from (least squares): the
+    exponent b, the points used, the law's value at the last of them and the step where it reaches `target`
+    (None when it does not fall). None with fewer than 3 points."""
+    points = sorted((r["step"], r["rollout_mse_k1"]) for r in rows
+                    if r["variant"] == ggns and r["rollout_mse_k1"] is not None and r["step"] >= fit_from)
+    if len(points) < 3:
+        return None
+    steps, values = (np.array(v, dtype=float) for v in zip(*points))
+    b, a = np.polyfit(np.log(steps), np.log(values), 1)
+    reach = float(np.exp((math.log(target) - a) / b)) if b < 0 else None
+    return {"fit_from": fit_from, "fit_to": int(steps[-1]), "points": len(points), "exponent": float(b),
+            "law_at_last_step": float(np.exp(a + b * math.log(steps[-1]))), "target": target,
+            "steps_to_target": None if reach is None else round(reach)}
+
+
 def write_csv(path: Path, rows: list[dict]) -> None:
     with path.open("w", newline="") as f:
         if rows:
@@ -118,6 +166,8 @@ def main(argv: list[str] | None = None) -> Path:
     parser.add_argument("--max-steps", type=int, default=None, help="the budget every run was given")
     parser.add_argument("--earlier", type=Path, default=None,
                         help="an earlier report's folder: runs with no logs under --sweep are kept from its raw files")
+    parser.add_argument("--fit-from", type=int, default=20000, help="the first step of GGNS's k=1 power-law fit")
+    parser.add_argument("--target", type=float, default=1.86e-5, help="the k=1 MSE the fitted law is followed to")
     args = parser.parse_args(argv)
     models = [args.ggns, *args.baselines]
     runs = read_runs(args.sweep, models, args.seed)
@@ -136,6 +186,12 @@ def main(argv: list[str] | None = None) -> Path:
     write_csv(args.output / "validations.csv", rows)
     write_csv(args.output / "ratios.csv", ratios)
     write_csv(args.output / "status.csv", status)
+    tests = test_rows(args.sweep, models, args.seed)
+    test_ratio = test_ratios(tests, args.ggns, args.baselines)
+    write_csv(args.output / "tests.csv", tests + [{"model": r["baseline"], "metric": f"ratio_never_to_{args.ggns}_k1",
+                                                   "mean": r["ratio"], "std": None, "count": None} for r in test_ratio])
+    fit = power_law(rows, args.ggns, args.fit_from, args.target)
+    write_csv(args.output / "fit.csv", [fit] if fit else [])
     plot_curves(curves, args.output / "curves_steps.png", "steps", title="model")
     ratio_lines = [[str(r["step"]), r["baseline"], f"{r['ggns_k1']:.3g}", f"{r['baseline_never']:.3g}", f"{r['ratio']:.2f}"]
                    for r in ratios]
@@ -158,7 +214,22 @@ def main(argv: list[str] | None = None) -> Path:
         "## The grounding ratio at equal steps", "",
         "Each baseline's validation full-rollout MSE over GGNS's validation k=1 rollout MSE at the same optimizer step.", "",
         markdown_table(["step", "baseline", "GGNS k=1", "baseline never", "ratio"], ratio_lines) if ratio_lines else "(none yet)",
-        "", "## Validations", "", validation_markdown(rows), "", "![curves](curves_steps.png)", ""])
+        "", "## Tests", "",
+        "Each run's test metrics (its sweep test: the checkpoint of each family selected on validation), and each "
+        "baseline's test full-rollout MSE over GGNS's test k=1.", "",
+        markdown_table(["model", "metric", "mean", "std over trajectories", "trajectories"],
+                       [[r["model"], r["metric"], f"{r['mean']:.4g}", "-" if r["std"] is None else f"{r['std']:.3g}",
+                         str(r["count"])] for r in tests if r["metric"] in REPORTED]) if tests else "(no run tested yet)", "",
+        *([markdown_table(["baseline", "GGNS k=1", "baseline never", "ratio"],
+                          [[r["baseline"], f"{r['ggns_k1']:.4g}", f"{r['baseline_never']:.4g}", f"{r['ratio']:.2f}"]
+                           for r in test_ratio]), ""] if test_ratio else []),
+        "## GGNS's k=1 curve as a power law", "",
+        ("(fewer than 3 validations from the fit's first step)" if fit is None else
+         f"Fitted to the {fit['points']} validations from step {fit['fit_from']:,} to {fit['fit_to']:,}: MSE ~ step^"
+         f"{fit['exponent']:.2f}, {fit['law_at_last_step']:.3g} at step {fit['fit_to']:,}; "
+         + ("it does not fall." if fit["steps_to_target"] is None else
+            f"followed on, it reaches {fit['target']:.3g} at step {fit['steps_to_target']:,} (an extrapolation).")), "",
+        "## Validations", "", validation_markdown(rows), "", "![curves](curves_steps.png)", ""])
     report = args.output / "report.md"
     report.write_text(text)
     print(f"wrote {report}")

@@ -1,4 +1,4 @@
-"""The main job end to end on tiny sizes: the tiny registry's three simulators evaluated on generated
+"""The demo end to end on tiny sizes: the tiny registry's three simulators evaluated on generated
 test trajectories, the pictures, GGNS trained from scratch through the Lightning CLI, the report."""
 from __future__ import annotations
 

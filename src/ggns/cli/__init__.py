@@ -4,7 +4,7 @@
     parser.py     argparse parsers built from typed, documented functions
     commands.py   generate, import-reference, geometry, export, rollout, diagnose, sweep, pretrained, demo, paper
     bench.py      the `bench` commands
-    demo.py       the main job (`demo`)
+    demo.py       the demo (`demo`)
 
 `build_cli`, `config_bases`, `shipped_configs` and the CLI's other names are importable from here; they
 are loaded when first asked for, so that `python -m ggns sweep ...` and `--help` start without Lightning.
@@ -32,7 +32,7 @@ USAGE = """Command line: `python -m ggns <command>` (or the `ggns` console scrip
               `bench models`: training and rollout throughput of the learned simulators;
               `bench tradeoff`: time per rollout step against rollout error, CSV + Pareto plot;
               `bench learning`: learning curves of model variants per CPU-second, table + plots)
-    demo      the README's main job on a small embedded default
+    demo      the README's demo on a small embedded default
     paper     sweep summaries in the paper's layout, the paper's figures beside them
 
 A bad input (missing file or preset, out-of-range value, unreadable dataset or checkpoint) or a

@@ -370,7 +370,7 @@ def pretrained_package(name: str, output: str | None = None) -> Path:
 def demo(task: Literal["plate", "tissue"] = "plate", output: str = "lightning_logs/demo", minutes: float | None = None,
          test_trajectories: int | None = None, data: str | None = None, train: bool = True, online: bool = False,
          trajectory: int = 0, every: int = 2, latency: int = 1, noise: float = 1.0) -> Path:
-    """The README's main job (conf/demo/<task>.yaml): the pretrained GGNS, MGN and MGN(M) on test
+    """The README's demo (conf/demo/<task>.yaml): the pretrained GGNS, MGN and MGN(M) on test
     trajectories generated here, pictures, and GGNS trained from scratch for a few minutes; with --online,
     the shipped GGNS stepped tick by tick on one test trajectory, fed late, noisy depth frames, beside the
     blind models (docs/online.md).

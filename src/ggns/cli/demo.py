@@ -1,4 +1,4 @@
-"""The README's main job (`make demo`, `python -m ggns demo [--task tissue]`), set by conf/demo/<task>.yaml:
+"""The README's demo (`make demo`, `python -m ggns demo [--task tissue]`), set by conf/demo/<task>.yaml:
 
 1. generate the task's small data preset on this machine (numbers are made here, never copied);
 2. evaluate the pretrained GGNS (a point cloud every k = 1, 2, 5, 10 steps, never), MGN and MGN(M)
@@ -209,7 +209,7 @@ def time_to_claim(scratch: dict, mgn_level: float) -> tuple[float, float] | None
 def run_demo(task: str = "plate", output: str | Path = "lightning_logs/demo", minutes: float | None = None,
              test_trajectories: int | None = None, data: str | None = None, train: bool = True,
              spec: dict | None = None) -> Path:
-    """The main job (module docstring) with conf/demo/<task>.yaml, or `spec` in its layout."""
+    """The demo (module docstring) with conf/demo/<task>.yaml, or `spec` in its layout."""
     start = time.perf_counter()
     spec = load_demo(task) if spec is None else spec
     if test_trajectories is not None:
